@@ -1,0 +1,13 @@
+"""jaxloc: differentiable global localization against compact semantic maps, in JAX.
+
+Two published methods as pure, jit/vmap-able functions:
+
+* SG2Loc: sequential visual localization of a camera in a 3D scene graph (particle filter over
+  ``(x, y, z, yaw)`` poses, BVH raycasting of coarse object meshes, semantic/depth/SSIM scores).
+* M2Loc: one-shot LiDAR global localization from semantic instance centroids
+  (:mod:`jaxloc.triplet`).
+"""
+
+from jaxloc.camera import Camera, RayGrid, patch_grid, stride_grid
+
+__all__ = ["Camera", "RayGrid", "patch_grid", "stride_grid"]
