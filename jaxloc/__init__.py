@@ -9,5 +9,25 @@ Two published methods as pure, jit/vmap-able functions:
 """
 
 from jaxloc.camera import Camera, RayGrid, patch_grid, stride_grid
+from jaxloc.raycast import RayHit, raycast
+from jaxloc.render import Render, render, render_batch
+from jaxloc.scene import Capacity, MapFormatError, SceneGraph, load_scene, save_scene
+from jaxloc.sequence import Sequence
 
-__all__ = ["Camera", "RayGrid", "patch_grid", "stride_grid"]
+__all__ = [
+    "Camera",
+    "Capacity",
+    "MapFormatError",
+    "RayGrid",
+    "RayHit",
+    "Render",
+    "SceneGraph",
+    "Sequence",
+    "load_scene",
+    "patch_grid",
+    "raycast",
+    "render",
+    "render_batch",
+    "save_scene",
+    "stride_grid",
+]

@@ -1,0 +1,189 @@
+"""Simulated sensors of the synthetic indoor world: rendering, patch embeddings, depth, RGB and
+ego-motion with configurable noise (host-side numpy, seeded ``numpy.random.Generator``)."""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+import trimesh
+from scipy import ndimage
+
+from jaxloc.camera import Camera, stride_grid
+from jaxloc.geometry import ego_motion, rotation_world_cam
+
+
+def render_views(
+    meshes, object_ids: np.ndarray, camera: Camera, poses: np.ndarray, tilts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Full-resolution object ids, z-depth and colour of every pixel of every view.
+
+    Stand-in renderer (trimesh ray casting, Embree when installed) of the query scene; the camera
+    conventions are the library's (``rotation_world_cam``, pixel centres at integer coordinates).
+
+    Args:
+        meshes: world-frame trimesh meshes with per-vertex colours.
+        object_ids: (n,) the id each mesh reports.
+        camera: the pinhole camera.
+        poses: (T, 4) camera poses (x, y, z, yaw).
+        tilts: (T, 2) (pitch, roll), radians.
+
+    Returns:
+        object id (T, H, W) int32 (-1 on a miss), z-depth along the optical axis (T, H, W)
+        float32 metres (+inf on a miss) and colour (T, H, W, 3) float32 in [0, 1].
+    """
+    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])
+    vertices = np.concatenate([m.vertices for m in meshes])
+    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets[:-1], strict=True)])
+    colors = np.concatenate([np.asarray(m.visual.vertex_colors)[:, :3] / 255.0 for m in meshes])
+    triangle_object = np.repeat(np.asarray(object_ids, np.int32), [len(m.faces) for m in meshes])
+    intersector = trimesh.Trimesh(vertices, faces, process=False).ray
+
+    rays_cam = np.asarray(camera.directions(stride_grid(camera, 1).uv), np.float64)  # (H*W, 3)
+    rotations = np.asarray(jax.vmap(rotation_world_cam)(poses[:, 3], tilts), np.float64)
+    shape = (len(poses), camera.height * camera.width)
+    object_id = np.full(shape, -1, np.int32)
+    depth = np.full(shape, np.inf, np.float32)
+    color = np.zeros(shape + (3,), np.float32)
+    for view, (pose, rotation) in enumerate(zip(poses, rotations, strict=True)):
+        origin = np.asarray(pose[:3], np.float64)
+        directions = rays_cam @ rotation.T
+        triangle = intersector.intersects_first(
+            np.broadcast_to(origin, directions.shape), directions
+        )
+        hit = np.flatnonzero(triangle >= 0)
+        corner = faces[triangle[hit]]
+        distance, weights = _ray_triangle(origin, directions[hit], vertices[corner])
+        object_id[view, hit] = triangle_object[triangle[hit]]
+        depth[view, hit] = distance * rays_cam[hit, 2]  # unit rays: z-depth = t * cos(angle)
+        color[view, hit] = (weights[:, :, None] * colors[corner]).sum(axis=1)
+    image = (len(poses), camera.height, camera.width)
+    return (
+        object_id.reshape(image),
+        depth.reshape(image),
+        np.clip(color, 0, 1).reshape(image + (3,)),
+    )
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross products of (3, R) column vectors."""
+    return np.stack(
+        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+    )
+
+
+def _ray_triangle(origin: np.ndarray, directions: np.ndarray, corners: np.ndarray):
+    """Distance along each (unit) ray to the plane of its hit triangle, and the barycentric
+    weights (R, 3) of the hit point (Moller-Trumbore, float64)."""
+    v0 = corners[:, 0].T
+    e1, e2 = corners[:, 1].T - v0, corners[:, 2].T - v0  # (3, R) rows are x, y, z
+    d = directions.T
+    p = _cross(d, e2)
+    inverse = 1.0 / (e1 * p).sum(axis=0)
+    offset = origin[:, None] - v0
+    q = _cross(offset, e1)
+    u = (offset * p).sum(axis=0) * inverse
+    v = (d * q).sum(axis=0) * inverse
+    t = (e2 * q).sum(axis=0) * inverse
+    return t, np.stack([1.0 - u - v, u, v], axis=1)
+
+
+def dominant_objects(object_images: np.ndarray, camera: Camera, rows: int, cols: int) -> np.ndarray:
+    """(T, rows, cols) int32: the object covering most pixels of each patch (-1 if all miss)."""
+    patch = np.asarray(stride_grid(camera, 1, rows, cols).patch)
+    num_views = object_images.shape[0]
+    ids = object_images.reshape(num_views, -1) + 1  # 0 = miss
+    width = int(ids.max()) + 1
+    keys = (np.arange(num_views)[:, None] * (rows * cols) + patch[None, :]) * width + ids
+    counts = np.bincount(keys.ravel(), minlength=num_views * rows * cols * width)
+    counts = counts.reshape(num_views, rows * cols, width)[..., 1:]
+    best = np.where(counts.max(axis=-1) > 0, counts.argmax(axis=-1), -1)
+    return best.reshape(num_views, rows, cols).astype(np.int32)
+
+
+def _unit(rng: np.random.Generator, shape) -> np.ndarray:
+    v = rng.normal(size=shape)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def patch_embeddings(
+    rng: np.random.Generator,
+    dominant: np.ndarray,
+    embeddings: np.ndarray,
+    confusion_rate: float,
+    cosine_range: tuple[float, float],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Simulated SceneGraphLoc patch embeddings.
+
+    A patch showing object k gets ``c e_j + sqrt(1 - c^2) u`` with ``u`` a random unit vector
+    orthogonal to ``e_j`` and ``c ~ U(cosine_range)``, so its cosine with ``e_j`` is exactly c;
+    ``j = k`` except with probability ``confusion_rate``, where j is another map object drawn
+    uniformly. Patches showing nothing get a random unit vector.
+
+    Args:
+        dominant: (...,) int32 map object per patch, -1 for none.
+        embeddings: (n, d) unit map object embeddings.
+
+    Returns:
+        (..., d) float32 unit embeddings, and (...,) bool: which patches were confused.
+    """
+    n, dim = embeddings.shape
+    confused = (dominant >= 0) & (rng.uniform(size=dominant.shape) < confusion_rate) & (n > 1)
+    other = (dominant + 1 + rng.integers(0, max(n - 1, 1), size=dominant.shape)) % n
+    source = np.where(confused, other, dominant)
+    target = embeddings[np.maximum(source, 0)]
+    noise = rng.normal(size=dominant.shape + (dim,))
+    noise -= np.sum(noise * target, axis=-1, keepdims=True) * target
+    noise /= np.linalg.norm(noise, axis=-1, keepdims=True)
+    cosine = rng.uniform(*cosine_range, size=dominant.shape + (1,))
+    out = cosine * target + np.sqrt(1.0 - cosine**2) * noise
+    out = np.where((dominant >= 0)[..., None], out, _unit(rng, dominant.shape + (dim,)))
+    return out.astype(np.float32), confused
+
+
+def sensor_depth(
+    rng: np.random.Generator, depth: np.ndarray, relative_noise: float, hole_rate: float
+) -> np.ndarray:
+    """Noisy sensor depth (T, H, W) float32 metres, 0 = invalid.
+
+    Each valid pixel is scaled by ``1 + relative_noise * N(0, 1)``; holes are blobs (a smoothed
+    random field thresholded at its ``1 - hole_rate`` quantile, so each frame loses exactly that
+    fraction of pixels); pixels that see nothing are holes too.
+    """
+    noisy = depth * (1.0 + relative_noise * rng.normal(size=depth.shape))
+    num_views, height, width = depth.shape
+    if hole_rate > 0:
+        field = rng.normal(size=depth.shape)
+        field = ndimage.gaussian_filter(
+            field, sigma=(0, max(1.0, height / 60), max(1.0, width / 60))
+        )
+        flat = field.reshape(num_views, -1)
+        count = int(round(hole_rate * height * width))
+        threshold = np.partition(flat, flat.shape[1] - count, axis=1)[:, flat.shape[1] - count]
+        holes = (flat >= threshold[:, None]) if count else np.zeros_like(flat, bool)
+        noisy = np.where(holes.reshape(depth.shape), 0.0, noisy)
+    noisy = np.where(np.isfinite(depth) & (noisy > 0), noisy, 0.0)
+    return noisy.astype(np.float32)
+
+
+def sensor_rgb(
+    rng: np.random.Generator, color: np.ndarray, noise: float, exposure_sigma: float
+) -> np.ndarray:
+    """Noisy RGB (T, H, W, 3) float32 in [0, 1]: a per-frame exposure gain ``exp(N(0, s))``
+    times the rendered colour, plus per-pixel Gaussian noise, clipped."""
+    gain = np.exp(exposure_sigma * rng.normal(size=(color.shape[0], 1, 1, 1)))
+    noisy = color * gain + noise * rng.normal(size=color.shape)
+    return np.clip(noisy, 0.0, 1.0).astype(np.float32)
+
+
+def noisy_ego_motion(
+    rng: np.random.Generator, poses: np.ndarray, translation_sigma: float, yaw_sigma: float
+) -> np.ndarray:
+    """(T-1, 4) ego-motion between consecutive poses plus independent Gaussian noise per frame
+    (``translation_sigma`` metres on each of dx, dy, dz; ``yaw_sigma`` radians on dyaw)."""
+    if len(poses) < 2:
+        return np.zeros((0, 4), np.float32)
+    true = np.asarray(jax.vmap(ego_motion)(poses[:-1], poses[1:]), np.float64)
+    sigma = np.array([translation_sigma] * 3 + [yaw_sigma])
+    noisy = true + sigma * rng.normal(size=true.shape)
+    noisy[:, 3] = (noisy[:, 3] + np.pi) % (2 * np.pi) - np.pi
+    return noisy.astype(np.float32)

@@ -1,0 +1,445 @@
+"""The map: a scene graph of objects (label, unit embedding, colour, coarse mesh) with a BVH.
+
+A :class:`SceneGraph` is an ``eqx.Module`` pytree of fixed-shape arrays. Its shapes are its
+:class:`Capacity`; two maps of the same capacity are interchangeable inside one compiled function
+(no recompilation). Build one with :meth:`SceneGraph.from_meshes`, pad it to a shared capacity with
+``capacity=``, save/load it with :func:`save_scene` / :func:`load_scene`.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import zipfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import trimesh
+from jax import Array
+
+from jaxloc.bvh import build_bvh
+
+FORMAT_NAME = "jaxloc.SceneGraph"
+FORMAT_VERSION = 1
+#: Triangles with an area below this (m^2) are dropped at build time (they can never be hit).
+MIN_TRIANGLE_AREA = 1e-12
+DEFAULT_LEAF_SIZE = 4
+#: SAH splits up to this depth, median splits below it: bounds the tree depth.
+MEDIAN_DEPTH = 32
+DEFAULT_STACK_SIZE = 64
+
+
+class MapFormatError(ValueError):
+    """A map file that is not a valid jaxloc scene graph (corrupt, truncated, wrong version)."""
+
+
+class Capacity(NamedTuple):
+    """Static array sizes of a scene graph. Maps of equal capacity share compiled functions."""
+
+    objects: int
+    triangles: int
+    nodes: int
+    leaves: int
+    edges: int
+    embedding_dim: int
+    leaf_size: int = DEFAULT_LEAF_SIZE
+    stack_size: int = DEFAULT_STACK_SIZE
+
+    def union(self, other: Capacity) -> Capacity:
+        """The smallest capacity holding both (for padding several maps to one shape)."""
+        if (self.embedding_dim, self.leaf_size, self.stack_size) != (
+            other.embedding_dim,
+            other.leaf_size,
+            other.stack_size,
+        ):
+            raise ValueError("capacities differ in embedding_dim, leaf_size or stack_size")
+        return self._replace(
+            objects=max(self.objects, other.objects),
+            triangles=max(self.triangles, other.triangles),
+            nodes=max(self.nodes, other.nodes),
+            leaves=max(self.leaves, other.leaves),
+            edges=max(self.edges, other.edges),
+        )
+
+
+class SceneGraph(eqx.Module):
+    """Objects and their coarse meshes, packed into fixed-shape arrays, with a flattened BVH.
+
+    Object arrays (O = object capacity, d = embedding dimension):
+        labels: (O,) int32 semantic class per object, -1 for padding.
+        embeddings: (O, d) float32 unit-norm object embeddings (zeros for padding).
+        colors: (O, 3) float32 mean object colour in [0, 1].
+        object_valid: (O,) bool.
+        edges: (E, 2) int32 object adjacency pairs, -1 rows for padding.
+    Triangle arrays (T = triangle capacity), world frame, metres:
+        triangles: (T, 3, 3) float32 vertex positions.
+        triangle_object: (T,) int32 owning object, -1 for padding.
+        triangle_colors: (T, 3, 3) float32 RGB in [0, 1] at each corner.
+    BVH arrays (see :mod:`jaxloc.bvh`): node_bounds (N + L, 6), node_children (N, 2),
+        leaf_triangles (L, 9, K), leaf_triangle_ids (L, K), root (), bounds (2, 3) the scene AABB.
+    stack_size: static traversal stack size (>= tree depth).
+    """
+
+    labels: Array
+    embeddings: Array
+    colors: Array
+    object_valid: Array
+    edges: Array
+    triangles: Array
+    triangle_object: Array
+    triangle_colors: Array
+    node_bounds: Array
+    node_children: Array
+    leaf_triangles: Array
+    leaf_triangle_ids: Array
+    root: Array
+    bounds: Array
+    stack_size: int = eqx.field(static=True)
+
+    @property
+    def capacity(self) -> Capacity:
+        return Capacity(
+            objects=self.labels.shape[0],
+            triangles=self.triangles.shape[0],
+            nodes=self.node_children.shape[0],
+            leaves=self.leaf_triangle_ids.shape[0],
+            edges=self.edges.shape[0],
+            embedding_dim=self.embeddings.shape[1],
+            leaf_size=self.leaf_triangle_ids.shape[1],
+            stack_size=self.stack_size,
+        )
+
+    @property
+    def num_objects(self) -> int:
+        """Number of real (non-padding) objects (host value)."""
+        return int(np.sum(np.asarray(self.object_valid)))
+
+    @property
+    def num_triangles(self) -> int:
+        """Number of real (non-padding) triangles (host value)."""
+        return int(np.sum(np.asarray(self.triangle_object) >= 0))
+
+    def storage_bytes(self) -> int:
+        """Bytes of the map's content as saved (meshes, labels, embeddings, colours, edges)."""
+        n, t = self.num_objects, self.num_triangles
+        per_object = 4 + 4 * self.embeddings.shape[1] + 4 * 3
+        per_triangle = 4 * 9 + 4 + 4 * 9
+        num_edges = int(np.sum(np.asarray(self.edges)[:, 0] >= 0))
+        return n * per_object + t * per_triangle + num_edges * 8
+
+    def storage_mb(self) -> float:
+        """Map size in MB (10^6 bytes), the quantity SG2Loc's storage table compares."""
+        return self.storage_bytes() / 1e6
+
+    @staticmethod
+    def from_meshes(
+        meshes: Sequence[trimesh.Trimesh],
+        labels: Sequence[int],
+        embeddings,
+        colors=None,
+        edges=None,
+        capacity: Capacity | None = None,
+    ) -> SceneGraph:
+        """Build a scene graph from one trimesh mesh per object.
+
+        Args:
+            meshes: n meshes in the world frame (metres, z up).
+            labels: n integer class labels (>= 0).
+            embeddings: (n, d) object embeddings; stored unit-norm (zero vectors are an error).
+            colors: optional (n, 3) RGB in [0, 1]; used for meshes without vertex or face
+                colours (default mid grey). Per-vertex colours of a mesh win where present.
+            edges: optional (m, 2) object index pairs (adjacency).
+            capacity: pad to this capacity (to share compiled code with other maps); by default
+                the exact sizes.
+
+        Degenerate triangles (area < 1e-12 m^2) are dropped; an object left with no triangle,
+        non-finite vertices, mismatched counts or bad shapes raise ``ValueError``.
+        """
+        arrays = _objects_to_arrays(meshes, labels, embeddings, colors, edges)
+        return _build(*arrays, capacity=capacity)
+
+
+def _objects_to_arrays(meshes, labels, embeddings, colors, edges):
+    if isinstance(meshes, trimesh.Trimesh):
+        raise TypeError("meshes must be a list of trimesh.Trimesh, one per object")
+    meshes = list(meshes)
+    n = len(meshes)
+    if n == 0:
+        raise ValueError("a scene graph needs at least one object")
+    labels_arr = np.asarray(labels)
+    if labels_arr.shape != (n,):
+        raise ValueError(
+            f"labels must have length {n} (one per mesh), got shape {labels_arr.shape}"
+        )
+    if not np.issubdtype(labels_arr.dtype, np.integer):
+        raise TypeError(f"labels must be integers, got dtype {labels_arr.dtype}")
+    if np.any(labels_arr < 0):
+        raise ValueError("labels must be >= 0 (-1 is reserved for padding)")
+    emb = np.asarray(embeddings, dtype=np.float64)
+    if emb.ndim != 2 or emb.shape[0] != n:
+        raise ValueError(f"embeddings must have shape (n, d) = ({n}, d), got {emb.shape}")
+    if not np.all(np.isfinite(emb)):
+        raise ValueError("embeddings contain NaN or inf")
+    norms = np.linalg.norm(emb, axis=1)
+    if np.any(norms == 0):
+        raise ValueError(
+            f"embeddings of objects {np.flatnonzero(norms == 0).tolist()} are zero vectors"
+        )
+    emb = (emb / norms[:, None]).astype(np.float32)
+    if colors is not None:
+        colors = np.asarray(colors, np.float64)
+        if colors.shape != (n, 3):
+            raise ValueError(f"colors must have shape ({n}, 3), got {colors.shape}")
+        if not np.all(np.isfinite(colors)) or colors.min() < 0 or colors.max() > 1:
+            raise ValueError("colors must be finite and in [0, 1]")
+
+    tris, tri_obj, tri_col, obj_col = [], [], [], []
+    for i, mesh in enumerate(meshes):
+        if not isinstance(mesh, trimesh.Trimesh):
+            raise TypeError(f"object {i}: expected trimesh.Trimesh, got {type(mesh).__name__}")
+        vertices = np.asarray(mesh.vertices, np.float64)
+        faces = np.asarray(mesh.faces)
+        if faces.size == 0 or vertices.size == 0:
+            raise ValueError(f"object {i}: empty mesh (no faces)")
+        if not np.all(np.isfinite(vertices)):
+            raise ValueError(f"object {i}: mesh has NaN/inf vertices")
+        corners = vertices[faces]  # (F, 3, 3)
+        area = 0.5 * np.linalg.norm(
+            np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1
+        )
+        keep = area >= MIN_TRIANGLE_AREA
+        if not np.any(keep):
+            raise ValueError(f"object {i}: every triangle is degenerate (zero area)")
+        default = colors[i] if colors is not None else np.full(3, 0.5)
+        corner_colors = _corner_colors(mesh, faces, default)
+        tris.append(corners[keep])
+        tri_obj.append(np.full(int(keep.sum()), i, np.int32))
+        tri_col.append(corner_colors[keep])
+        obj_col.append(corner_colors[keep].reshape(-1, 3).mean(0))
+    edges_arr = np.zeros((0, 2), np.int32) if edges is None else np.asarray(edges)
+    if edges_arr.size and (edges_arr.ndim != 2 or edges_arr.shape[1] != 2):
+        raise ValueError(f"edges must have shape (m, 2), got {edges_arr.shape}")
+    edges_arr = edges_arr.reshape(-1, 2)
+    if edges_arr.size and (
+        not np.issubdtype(edges_arr.dtype, np.integer)
+        or edges_arr.min() < 0
+        or edges_arr.max() >= n
+    ):
+        raise ValueError(f"edges must be integer object indices in [0, {n})")
+    return (
+        labels_arr.astype(np.int32),
+        emb,
+        np.asarray(obj_col, np.float32),
+        edges_arr.astype(np.int32),
+        np.concatenate(tris).astype(np.float32),
+        np.concatenate(tri_obj),
+        np.concatenate(tri_col).astype(np.float32),
+    )
+
+
+def _corner_colors(mesh: trimesh.Trimesh, faces: np.ndarray, default: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) RGB in [0, 1] per triangle corner."""
+    visual = mesh.visual
+    kind = getattr(visual, "kind", None)
+    if kind == "vertex":
+        vc = np.asarray(visual.vertex_colors, np.float64)[:, :3] / 255.0
+        return vc[faces]
+    if kind == "face":
+        fc = np.asarray(visual.face_colors, np.float64)[:, :3] / 255.0
+        return np.repeat(fc[:, None, :], 3, axis=1)
+    return np.broadcast_to(default, (faces.shape[0], 3, 3)).copy()
+
+
+def _pad(array: np.ndarray, size: int, fill, name: str) -> np.ndarray:
+    if array.shape[0] > size:
+        raise ValueError(
+            f"the map needs {array.shape[0]} {name} but the capacity holds {size}: "
+            f"raise Capacity.{name}"
+        )
+    out = np.full((size,) + array.shape[1:], fill, array.dtype)
+    out[: array.shape[0]] = array
+    return out
+
+
+def _pad_bounds(bvh, capacity: Capacity) -> np.ndarray:
+    """Box rows laid out as (nodes capacity + leaves capacity, 6): node r at r, leaf l at N_cap + l."""
+    _pad(bvh.node_children, capacity.nodes, -1, "nodes")  # capacity checks with clear messages
+    _pad(bvh.leaf_triangle_ids, capacity.leaves, -1, "leaves")
+    out = np.zeros((capacity.nodes + capacity.leaves, 6), np.float32)
+    out[: bvh.num_nodes] = bvh.bounds[: bvh.num_nodes]
+    out[capacity.nodes : capacity.nodes + bvh.num_leaves] = bvh.bounds[bvh.num_nodes :]
+    return out
+
+
+def _build(labels, emb, obj_col, edges, tris, tri_obj, tri_col, capacity=None) -> SceneGraph:
+    leaf_size = DEFAULT_LEAF_SIZE if capacity is None else capacity.leaf_size
+    stack_size = DEFAULT_STACK_SIZE if capacity is None else capacity.stack_size
+    bvh = build_bvh(tris, leaf_size=leaf_size, median_depth=MEDIAN_DEPTH)
+    if bvh.depth >= stack_size:
+        raise ValueError(f"BVH depth {bvh.depth} needs a stack of more than {stack_size} entries")
+    if capacity is None:
+        capacity = Capacity(
+            objects=labels.shape[0],
+            triangles=tris.shape[0],
+            nodes=bvh.num_nodes,
+            leaves=bvh.num_leaves,
+            edges=edges.shape[0],
+            embedding_dim=emb.shape[1],
+            leaf_size=leaf_size,
+            stack_size=stack_size,
+        )
+    if emb.shape[1] != capacity.embedding_dim:
+        raise ValueError(
+            f"embedding dimension {emb.shape[1]} differs from the capacity's {capacity.embedding_dim}"
+        )
+    valid = np.zeros(capacity.objects, bool)
+    valid[: labels.shape[0]] = True
+    lo, hi = tris.reshape(-1, 3).min(0), tris.reshape(-1, 3).max(0)
+    return SceneGraph(
+        labels=jnp.asarray(_pad(labels, capacity.objects, -1, "objects")),
+        embeddings=jnp.asarray(_pad(emb, capacity.objects, 0.0, "objects")),
+        colors=jnp.asarray(_pad(obj_col, capacity.objects, 0.0, "objects")),
+        object_valid=jnp.asarray(valid),
+        edges=jnp.asarray(_pad(edges, capacity.edges, -1, "edges")),
+        triangles=jnp.asarray(_pad(tris, capacity.triangles, 0.0, "triangles")),
+        triangle_object=jnp.asarray(_pad(tri_obj, capacity.triangles, -1, "triangles")),
+        triangle_colors=jnp.asarray(_pad(tri_col, capacity.triangles, 0.0, "triangles")),
+        node_bounds=jnp.asarray(_pad_bounds(bvh, capacity)),
+        node_children=jnp.asarray(_pad(bvh.node_children, capacity.nodes, -1, "nodes")),
+        leaf_triangles=jnp.asarray(_pad(bvh.leaf_triangles, capacity.leaves, 0.0, "leaves")),
+        leaf_triangle_ids=jnp.asarray(_pad(bvh.leaf_triangle_ids, capacity.leaves, -1, "leaves")),
+        root=jnp.asarray(bvh.root, jnp.int32),
+        bounds=jnp.asarray(np.stack([lo, hi]).astype(np.float32)),
+        stack_size=capacity.stack_size,
+    )
+
+
+# ----------------------------------------------------------------------------- save / load
+
+_SAVED = {
+    # name: (dtype, trailing shape or None for 1-D)
+    "labels": (np.int32, ()),
+    "embeddings": (np.float32, None),
+    "edges": (np.int32, (2,)),
+    "triangles": (np.float32, (3, 3)),
+    "triangle_object": (np.int32, ()),
+    "triangle_colors": (np.float32, (3, 3)),
+    "object_colors": (np.float32, (3,)),
+    "capacity": (np.int64, ()),
+}
+
+
+def save_scene(scene: SceneGraph, path: str | os.PathLike) -> None:
+    """Write ``scene`` to one versioned ``.npz`` file, atomically (temp file, then rename).
+
+    The file holds the map's content (objects, triangles, colours, edges) and its capacity; the
+    BVH is rebuilt deterministically on load, so a load gives back identical arrays.
+    """
+    path = Path(path)
+    n = scene.num_objects
+    keep_tri = np.asarray(scene.triangle_object) >= 0
+    keep_edge = np.asarray(scene.edges)[:, 0] >= 0
+    payload = {
+        "format": np.array(FORMAT_NAME),
+        "version": np.array(FORMAT_VERSION, np.int64),
+        "labels": np.asarray(scene.labels)[:n],
+        "embeddings": np.asarray(scene.embeddings)[:n],
+        "object_colors": np.asarray(scene.colors)[:n],
+        "edges": np.asarray(scene.edges)[keep_edge],
+        "triangles": np.asarray(scene.triangles)[keep_tri],
+        "triangle_object": np.asarray(scene.triangle_object)[keep_tri],
+        "triangle_colors": np.asarray(scene.triangle_colors)[keep_tri],
+        "capacity": np.asarray(tuple(scene.capacity), np.int64),
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez_compressed(f, **payload)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def load_scene(path: str | os.PathLike) -> SceneGraph:
+    """Load and validate a map written by :func:`save_scene` (never unpickles).
+
+    Raises :class:`MapFormatError` for a corrupt, truncated, foreign or newer-version file, or one
+    whose arrays have wrong shapes, dtypes or non-finite values.
+    """
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            content = {key: data[key] for key in data.files}
+    except FileNotFoundError:
+        raise
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as err:
+        raise MapFormatError(f"{path}: not a readable jaxloc map ({err})") from err
+    if str(content.get("format", "")) != FORMAT_NAME:
+        raise MapFormatError(f"{path}: not a jaxloc scene graph file")
+    version = content.get("version")
+    if version is None or version.shape != () or int(version) != FORMAT_VERSION:
+        raise MapFormatError(
+            f"{path}: format version {version} is not supported (this jaxloc reads {FORMAT_VERSION})"
+        )
+    for key, (dtype, trailing) in _SAVED.items():
+        if key not in content:
+            raise MapFormatError(f"{path}: missing array '{key}'")
+        arr = content[key]
+        if arr.dtype != dtype:
+            raise MapFormatError(
+                f"{path}: '{key}' has dtype {arr.dtype}, expected {np.dtype(dtype)}"
+            )
+        if trailing is not None and arr.shape[1:] != trailing:
+            raise MapFormatError(f"{path}: '{key}' has shape {arr.shape}")
+        if np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
+            raise MapFormatError(f"{path}: '{key}' contains NaN or inf")
+    n = content["labels"].shape[0]
+    t = content["triangles"].shape[0]
+    emb = content["embeddings"]
+    checks = [
+        (n >= 1 and emb.ndim == 2 and emb.shape[0] == n, "embeddings do not match labels"),
+        (
+            emb.ndim == 2 and np.allclose(np.linalg.norm(emb, axis=-1), 1.0, atol=1e-4),
+            "embeddings are not unit-norm",
+        ),
+        (content["object_colors"].shape[0] == n, "object_colors do not match labels"),
+        (t >= 1, "no triangles"),
+        (content["triangle_object"].shape[0] == t, "triangle_object does not match triangles"),
+        (content["triangle_colors"].shape[0] == t, "triangle_colors do not match triangles"),
+        (content["capacity"].shape == (len(Capacity._fields),), "bad capacity record"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise MapFormatError(f"{path}: {message}")
+    tri_obj, edges = content["triangle_object"], content["edges"]
+    if (
+        tri_obj.min() < 0
+        or tri_obj.max() >= n
+        or (edges.size and (edges.min() < 0 or edges.max() >= n))
+    ):
+        raise MapFormatError(f"{path}: object indices out of range")
+    if np.any(content["labels"] < 0):
+        raise MapFormatError(f"{path}: negative labels")
+    capacity = Capacity(*(int(c) for c in content["capacity"]))
+    try:
+        return _build(
+            content["labels"],
+            emb,
+            content["object_colors"],
+            edges,
+            content["triangles"],
+            tri_obj,
+            content["triangle_colors"],
+            capacity=capacity,
+        )
+    except ValueError as err:
+        raise MapFormatError(f"{path}: {err}") from err
