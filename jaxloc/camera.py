@@ -50,7 +50,7 @@ class Camera(eqx.Module):
         return Camera(f, f, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
 
     def directions(self, uv: Array) -> Array:
-        """Unit ray directions (..., 3) in the camera frame for pixel coordinates ``uv`` (..., 2)."""
+        """Unit ray directions (..., 3), camera frame, through pixel coordinates ``uv`` (..., 2)."""
         x = (uv[..., 0] - self.cx) / self.fx
         y = (uv[..., 1] - self.cy) / self.fy
         d = jnp.stack([x, y, jnp.ones_like(x)], axis=-1)

@@ -162,7 +162,9 @@ def frames_on_grid(sequence: Sequence, grid: RayGrid) -> Frame:
     return Frame(
         index=jnp.arange(num_frames, dtype=jnp.int32),
         motion=jnp.asarray(motion),
-        patch_embeddings=jnp.asarray(sequence.patch_embeddings.reshape(num_frames, rows_p * cols_p, -1)),
+        patch_embeddings=jnp.asarray(
+            sequence.patch_embeddings.reshape(num_frames, rows_p * cols_p, -1)
+        ),
         depth=jnp.asarray(depth),
         rgb=jnp.asarray(rgb),
         tilt=jnp.asarray(sequence.tilt),

@@ -39,23 +39,12 @@ def wrap_angle(angle: Array) -> Array:
     return (angle + jnp.pi) % (2.0 * jnp.pi) - jnp.pi
 
 
-def rot_z(yaw: Array) -> Array:
-    """Right-handed rotation about +z, shape (3, 3)."""
-    c, s = jnp.cos(yaw), jnp.sin(yaw)
-    zero, one = jnp.zeros_like(c), jnp.ones_like(c)
-    return jnp.stack(
-        [jnp.stack([c, -s, zero]), jnp.stack([s, c, zero]), jnp.stack([zero, zero, one])]
-    )
-
-
 def rotation_world_cam(yaw: Array, tilt: Array | None = None) -> Array:
-    """``R_world_cam`` (3, 3) for a camera with the given yaw and optional ``tilt = (pitch, roll)``."""
+    """``R_world_cam`` (3, 3) of a camera with a yaw and an optional ``tilt = (pitch, roll)``."""
     r_world_body = jaxlie.SO3.from_z_radians(yaw)
     if tilt is not None:
         r_world_body = (
-            r_world_body
-            @ jaxlie.SO3.from_y_radians(tilt[0])
-            @ jaxlie.SO3.from_x_radians(tilt[1])
+            r_world_body @ jaxlie.SO3.from_y_radians(tilt[0]) @ jaxlie.SO3.from_x_radians(tilt[1])
         )
     return r_world_body.as_matrix() @ R_BODY_CAM.astype(r_world_body.wxyz.dtype)
 
@@ -91,7 +80,10 @@ def compose_yaw(pose: Array, delta: Array) -> Array:
 
 
 def ego_motion(pose_a: Array, pose_b: Array) -> Array:
-    """The motion ``(dx, dy, dz, dyaw)`` from ``pose_a`` to ``pose_b`` in a's gravity-aligned body frame."""
+    """Motion ``(dx, dy, dz, dyaw)`` from ``pose_a`` to ``pose_b`` in a's gravity-aligned frame.
+
+    The inverse of :func:`compose_yaw`: ``compose_yaw(a, ego_motion(a, b)) == b``.
+    """
     c, s = jnp.cos(pose_a[3]), jnp.sin(pose_a[3])
     d = pose_b[:3] - pose_a[:3]
     return jnp.stack(

@@ -1,7 +1,7 @@
 """Render what a camera at a 4-DoF pose sees: per-ray object, depth and colour, per-patch majority.
 
-:func:`render` handles one pose (vmap it for a batch); :func:`render_batch` renders many poses in one
-raycast, which is faster because the traversal's chunks then span particles. Both give the same
+:func:`render` handles one pose (vmap it for a batch); :func:`render_batch` renders many poses in
+one raycast, which is faster because the traversal's chunks then span particles. Both give the same
 values.
 """
 
@@ -30,7 +30,8 @@ class Render(eqx.Module):
         depth: (R,) float32 z-depth along the optical axis in metres (as a depth sensor reports
             it); +inf on a miss.
         t: (R,) float32 range along the ray in metres; +inf on a miss.
-        color: (R, 3) float32 RGB in [0, 1] interpolated from the mesh's corner colours; 0 on a miss.
+        color: (R, 3) float32 RGB in [0, 1] interpolated from the mesh's corner colours; 0 on a
+            miss.
         valid: (R,) bool, the ray hit something.
         patch_object: (P,) int32 the majority label among the patch's rays, counting a miss as a
             candidate: -1 when misses are the majority or the patch has no ray.
@@ -131,11 +132,15 @@ def render_batch(
     num = poses.shape[0]
     tilts = None if tilt is None else jnp.broadcast_to(tilt, (num, 2))
     d_cam = camera.directions(grid.uv)
-    rotations = jax.vmap(rotation_world_cam)(poses[:, 3], tilts) if tilts is not None else (
-        jax.vmap(rotation_world_cam)(poses[:, 3])
+    rotations = (
+        jax.vmap(rotation_world_cam)(poses[:, 3], tilts)
+        if tilts is not None
+        else (jax.vmap(rotation_world_cam)(poses[:, 3]))
     )
-    order = _tile_order(grid.shape) if np.prod(grid.shape) == grid.uv.shape[0] else np.arange(
-        grid.uv.shape[0]
+    order = (
+        _tile_order(grid.shape)
+        if np.prod(grid.shape) == grid.uv.shape[0]
+        else np.arange(grid.uv.shape[0])
     )
     num_rays = order.shape[0]
     padded = -(-num_rays // PACKET_SIZE) * PACKET_SIZE

@@ -266,7 +266,7 @@ def _pad(array: np.ndarray, size: int, fill, name: str) -> np.ndarray:
 
 
 def _pad_bounds(bvh, capacity: Capacity) -> np.ndarray:
-    """Box rows laid out as (nodes capacity + leaves capacity, 6): node r at r, leaf l at N_cap + l."""
+    """Box rows as (nodes capacity + leaves capacity, 6): node r at row r, leaf l at N_cap + l."""
     _pad(bvh.node_children, capacity.nodes, -1, "nodes")  # capacity checks with clear messages
     _pad(bvh.leaf_triangle_ids, capacity.leaves, -1, "leaves")
     out = np.zeros((capacity.nodes + capacity.leaves, 6), np.float32)
@@ -294,7 +294,8 @@ def _build(labels, emb, obj_col, edges, tris, tri_obj, tri_col, capacity=None) -
         )
     if emb.shape[1] != capacity.embedding_dim:
         raise ValueError(
-            f"embedding dimension {emb.shape[1]} differs from the capacity's {capacity.embedding_dim}"
+            f"embedding dimension {emb.shape[1]} differs from the capacity's "
+            f"{capacity.embedding_dim}"
         )
     valid = np.zeros(capacity.objects, bool)
     valid[: labels.shape[0]] = True
@@ -388,7 +389,8 @@ def load_scene(path: str | os.PathLike) -> SceneGraph:
     version = content.get("version")
     if version is None or version.shape != () or int(version) != FORMAT_VERSION:
         raise MapFormatError(
-            f"{path}: format version {version} is not supported (this jaxloc reads {FORMAT_VERSION})"
+            f"{path}: format version {version} is not supported "
+            f"(this jaxloc reads {FORMAT_VERSION})"
         )
     for key, (dtype, trailing) in _SAVED.items():
         if key not in content:

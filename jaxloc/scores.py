@@ -274,7 +274,10 @@ class ObservationConfig(eqx.Module):
         clip_total: clip ``S`` to [0, S_max] before the Gaussian (authors' code); default False.
         lambda_depth, lambda_color: weights of ``s_d`` and ``s_i`` in ``S`` (paper: 2 and 2, so
             that ``S_max = 6`` with the paper's ranges).
-        sigma: width of the Gaussian on ``S_max - S`` (paper section 3.3: 0.2; authors' code 0.6).
+        sigma: width of the Gaussian on ``S_max - S``. Default 0.6: the paper gives 0.2 for the
+            semantic-only likelihood on ``s`` in [0, 2] (section 3.3) and no value for eq. (2),
+            whose range is three times larger; 0.6 is that 0.2 scaled to ``S_max = 6`` and is what
+            the authors' code uses. For semantic only (no depth, no colour) use 0.2.
         depth_clip: clip threshold of the ``"clipped"`` depth variant (metres).
         depth_miss_error: error of a rendered miss in the ``"l1"`` depth variant (metres).
     """
@@ -287,7 +290,7 @@ class ObservationConfig(eqx.Module):
     clip_total: bool = eqx.field(static=True, default=False)
     lambda_depth: Array = eqx.field(default=2.0, converter=_as_float32)
     lambda_color: Array = eqx.field(default=2.0, converter=_as_float32)
-    sigma: Array = eqx.field(default=0.2, converter=_as_float32)
+    sigma: Array = eqx.field(default=0.6, converter=_as_float32)
     depth_clip: Array = eqx.field(default=0.5, converter=_as_float32)
     depth_miss_error: Array = eqx.field(default=1.0, converter=_as_float32)
 

@@ -16,9 +16,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import Array
+from tqdm.auto import tqdm
 
 from jaxloc.camera import stride_grid
-from jaxloc.filter import Region, StepConfig, StepInfo, frames_on_grid, run_pass
+from jaxloc.filter import Region, StepConfig, StepInfo, frames_on_grid, run_pass, step
 from jaxloc.geometry import uncompose_yaw
 from jaxloc.particles import DEFAULT_BOX_YAW_HALF_RANGE, init_box, init_region
 from jaxloc.resample import KLDConfig
@@ -109,20 +110,46 @@ def carry_back(pose: Array, ego_motion: Array) -> Array:
     return first
 
 
-@eqx.filter_jit
-def _round(key, state_init_args, frames, scene, step_config, capacity: int, first_round: bool):
-    key_init, key_run = jax.random.split(key)
-    if first_round:
+def _initial_state(key, init_args, step_config: StepConfig, capacity: int):
+    if init_args is None:
         region = step_config.region
-        state = init_region(key_init, capacity, region.lo, region.hi, region.floor_z)
-    else:
-        centre, half_width, yaw_half_range = state_init_args
-        state = init_box(key_init, capacity, centre, jnp.full((3,), half_width), yaw_half_range)
+        return init_region(key, capacity, region.lo, region.hi, region.floor_z)
+    centre, half_width, yaw_half_range = init_args
+    return init_box(key, capacity, centre, jnp.full((3,), half_width), yaw_half_range)
+
+
+@eqx.filter_jit
+def _round(key, init_args, frames, scene, step_config, capacity: int):
+    key_init, key_run = jax.random.split(key)
+    state = _initial_state(key_init, init_args, step_config, capacity)
     return run_pass(key_run, state, frames, scene, step_config)
 
 
+_jit_initial_state = eqx.filter_jit(_initial_state)
+_jit_step = eqx.filter_jit(step)
+
+
+def _round_with_progress(key, init_args, frames, scene, step_config, capacity, bar):
+    """The same computation as :func:`_round`, one jitted step per frame, updating ``bar``."""
+    key_init, key_run = jax.random.split(key)
+    state = _jit_initial_state(key_init, init_args, step_config, capacity)
+    num_frames = frames.index.shape[0]
+    infos = []
+    for frame_key, t in zip(jax.random.split(key_run, num_frames), range(num_frames), strict=True):
+        frame = jax.tree.map(lambda a, t=t: a[t], frames)
+        state, info = _jit_step(frame_key, state, frame, scene, step_config)
+        infos.append(info)
+        bar.update(1)
+    return state, jax.tree.map(lambda *xs: jnp.stack(xs), *infos)
+
+
 def localize(
-    key: Array, scene: SceneGraph, sequence: Sequence, config: SG2LocConfig | None = None
+    key: Array,
+    scene: SceneGraph,
+    sequence: Sequence,
+    config: SG2LocConfig | None = None,
+    *,
+    progress: bool = False,
 ) -> SG2LocResult:
     """Localize every frame of ``sequence`` in ``scene`` with the coarse-to-fine particle filter.
 
@@ -134,6 +161,8 @@ def localize(
         scene: the map.
         sequence: the query (its patch grid fixes the semantic patches).
         config: :class:`SG2LocConfig` (paper defaults).
+        progress: show a progress bar over rounds x frames (runs one jitted step per frame
+            instead of one ``lax.scan`` per round; same result).
     """
     config = SG2LocConfig() if config is None else config
     if not isinstance(scene, SceneGraph):
@@ -153,6 +182,8 @@ def localize(
     centre = jnp.full((4,), jnp.nan, jnp.float32)
     starts, round_mle, counts, particles, weights = [], [], [], [], []
     info = None
+    total = len(config.strides) * sequence.num_frames
+    bar = tqdm(total=total, unit="frame", disable=False) if progress else None
     for r, stride in enumerate(config.strides):
         grid = stride_grid(sequence.camera, stride, rows, cols)
         step_config = StepConfig(
@@ -166,15 +197,25 @@ def localize(
             inject_count=config.inject_count,
             inject_every=config.inject_every,
         )
-        init_args = None if r == 0 else (centre, config.box_half_widths[r - 1], config.yaw_half_range)
+        init_args = (
+            None if r == 0 else (centre, config.box_half_widths[r - 1], config.yaw_half_range)
+        )
         frames = frames_on_grid(sequence, grid)
-        _, info = _round(keys[r], init_args, frames, scene, step_config, config.capacity, r == 0)
+        if bar is None:
+            _, info = _round(keys[r], init_args, frames, scene, step_config, config.capacity)
+        else:
+            bar.set_description(f"round {r + 1}/{len(config.strides)} (stride {stride})")
+            _, info = _round_with_progress(
+                keys[r], init_args, frames, scene, step_config, config.capacity, bar
+            )
         starts.append(centre)
         round_mle.append(info.mle)
         counts.append(info.num_particles)
         particles.append(info.particles)
         weights.append(info.particle_weights)
         centre = carry_back(info.mle[-1], jnp.asarray(sequence.ego_motion))
+    if bar is not None:
+        bar.close()
     return SG2LocResult(
         poses=info.mle,
         round_mle=jnp.stack(round_mle),
