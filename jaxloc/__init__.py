@@ -8,6 +8,7 @@ Two published methods as pure, jit/vmap-able functions:
   (:mod:`jaxloc.triplet`).
 """
 
+from jaxloc import filter, metrics, particles, resample, scores, sg2loc
 from jaxloc.camera import Camera, RayGrid, patch_grid, stride_grid
 from jaxloc.raycast import RayHit, raycast
 from jaxloc.render import Render, render, render_batch
@@ -30,4 +31,10 @@ __all__ = [
     "render_batch",
     "save_scene",
     "stride_grid",
+    "filter",
+    "metrics",
+    "particles",
+    "resample",
+    "scores",
+    "sg2loc",
 ]
