@@ -11,7 +11,8 @@ Flat layout (N internal nodes, L leaves, K = leaf_size). A *reference* names a s
   at row N + l.
 * ``node_children`` (N, 2) int32: references of each internal node's two children.
 * ``leaf_triangles`` (L, 9, K) float32: per leaf and slot, ``v0, e1 = v1 - v0, e2 = v2 - v0``
-  (structure of arrays, one contiguous gather per leaf); empty slots are all-zero (det = 0, never hit).
+  (structure of arrays, one contiguous gather per leaf); empty slots are all-zero (det = 0, never
+  hit).
 * ``leaf_triangle_ids`` (L, K) int32: the original triangle index in each slot, -1 when empty.
 * ``root``: reference of the root (internal node 0, or leaf -2 when the tree is one leaf).
 

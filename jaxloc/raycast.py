@@ -1,11 +1,24 @@
 """Exact nearest-hit raycasting through the scene's BVH, with differentiable hit distances.
 
-The kernel is written for ONE ray (:func:`_traverse`) and vmapped over chunks of rays. Traversal is
-a ``lax.while_loop`` with a fixed-size stack (``scene.stack_size`` >= tree depth, so it can never
-overflow): at an internal node both child boxes are tested, the nearer hit child is visited first and
-the farther one pushed with its entry distance; popped entries farther than the best hit so far are
-skipped. There is no cap on the number of leaves visited, so the hit is the exact nearest one (up to
-float32 rounding of the Moller-Trumbore test, the same test a brute force over all triangles uses).
+Rays are grouped into packets of P consecutive rays that walk the tree together, and the packets
+are traced by one ``lax.while_loop`` over B *lanes* (persistent lanes): each lane holds one packet,
+and a lane whose packet is finished writes its result and takes the next packet from a queue in the
+same loop, so the loop never waits for the slowest packet of a fixed chunk. One iteration advances
+every lane by one node:
+
+* a lane at an internal node tests the boxes of the node's two children, which are stored with the
+  node (one gather), for its P rays; a child is entered when some ray hits its box closer than that
+  ray's best hit so far. The lane moves to the entered child with the smaller entry distance (the
+  nearest entry over the packet's rays) and pushes the other one, if also entered, on its fixed-size
+  stack (``scene.stack_size`` >= tree depth, so it can never overflow); with none entered it pops.
+* lanes at a leaf are compacted (up to B / 4 per iteration; the others wait one iteration) and only
+  they test their P rays against the leaf's K triangles (Moller-Trumbore, coordinates written out),
+  so the triangle test is not paid by the far more numerous internal-node steps. Each ray keeps its
+  best distance and the leaf that gave it; the lane then pops.
+
+Nothing bounds the number of leaves visited, so each ray's result is its exact nearest hit (up to
+float32 rounding of the Moller-Trumbore test, the same test a brute force over all triangles uses);
+the triangle within the winning leaf is picked afterwards by re-testing that leaf's K triangles.
 
 Distances ``t`` are metric: directions are normalised first, so ``t`` is the distance in metres from
 the origin along the unit direction. Differentiability: the traversal runs on stop-gradient inputs
@@ -28,9 +41,15 @@ from jaxloc.scene import SceneGraph
 T_MIN = 1e-6
 #: Moller-Trumbore determinant below which a ray counts as parallel to the triangle.
 DET_EPS = 1e-12
-#: Rays are processed in chunks of this many lanes: small enough to keep each chunk's traversal
-#: state in cache and its while loop short, large enough to amortise per-iteration overhead.
-DEFAULT_CHUNK = 2048
+#: Barycentric slack of the acceptance test: float32 rounding of u and v must not let a ray through
+#: an edge shared by two triangles miss both (a "leak" through a closed surface). Triangles grow by
+#: this fraction of their size, which is far below the meshes' accuracy.
+EDGE_EPS = 1e-5
+#: Rays in flight in the traversal loop (lanes x packet size): enough lanes to amortise the loop's
+#: per-iteration overhead, few enough that the loop state stays in cache.
+DEFAULT_CHUNK = 8192
+#: At most 1 / LEAF_LANE_FRACTION of the lanes test triangles in one iteration.
+LEAF_LANE_FRACTION = 4
 
 
 class RayHit(eqx.Module):
@@ -71,102 +90,154 @@ def _moller_trumbore(o, d, v0, e1, e2):
 def _triangle_hit(o, d, v0, e1, e2):
     """Moller-Trumbore with the acceptance test; t is +inf where the ray misses."""
     t, u, v, det = _moller_trumbore(o, d, v0, e1, e2)
-    hit = (jnp.abs(det) > DET_EPS) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > T_MIN)
+    inside = (u >= -EDGE_EPS) & (v >= -EDGE_EPS) & (u + v <= 1.0 + EDGE_EPS)
+    hit = (jnp.abs(det) > DET_EPS) & inside & (t > T_MIN)
     return jnp.where(hit, t, jnp.inf)
 
 
-def _box_entry(box, o, inv_d):
-    """Slab test of rays against one box ``[lo, hi]`` (6,), coordinates written out (structure of
-    arrays: ``o`` and ``inv_d`` are lists of 3 arrays); returns (entry clipped at 0, exit)."""
-    near, far = [], []
-    for axis in range(3):
-        t1 = (box[axis] - o[axis]) * inv_d[axis]
-        t2 = (box[axis + 3] - o[axis]) * inv_d[axis]
-        near.append(jnp.minimum(t1, t2))
-        far.append(jnp.maximum(t1, t2))
-    t_near = jnp.maximum(jnp.maximum(jnp.maximum(near[0], near[1]), near[2]), 0.0)
-    t_far = jnp.minimum(jnp.minimum(far[0], far[1]), far[2])
-    return t_near, t_far
-
-
-def _traverse_packet(scene: SceneGraph, origins: Array, directions: Array) -> Array:
-    """Nearest-hit triangle of each ray of one packet of P rays (unit directions), -1 on a miss.
-
-    The packet walks the tree together (one node gather per step for all P rays), each ray keeping
-    its own best distance: a node is entered when any ray of the packet hits its box closer than
-    that ray's best hit, so each ray's result is its own exact nearest hit. Children are visited
-    nearer-first along the packet's mean ray; the farther child waits on the stack. A packet of one
-    ray is the classic single-ray traversal. Rays with a non-finite origin never hit.
+def _child_entry(boxes, o, inv_d):
+    """Slab test of P rays against each lane's C child boxes, coordinates written out (structure
+    of arrays). ``boxes`` is a list of 6 arrays ``[lo_x, lo_y, lo_z, hi_x, hi_y, hi_z]`` (B, C, 1),
+    ``o`` and ``inv_d`` lists of 3 arrays (B, 1, P). Returns (entry clipped at 0, exit) (B, C, P).
     """
+    near = far = None
+    for axis in range(3):
+        t1 = (boxes[axis] - o[axis]) * inv_d[axis]
+        t2 = (boxes[axis + 3] - o[axis]) * inv_d[axis]
+        lo, hi = jnp.minimum(t1, t2), jnp.maximum(t1, t2)
+        near = lo if near is None else jnp.maximum(near, lo)
+        far = hi if far is None else jnp.minimum(far, hi)
+    return jnp.maximum(near, 0.0), far
+
+
+def _trace_packets(scene: SceneGraph, origins: Array, directions: Array, lanes: int) -> Array:
+    """Leaf holding the nearest hit of each ray, -1 on a miss: (Q, P) for Q packets of P rays.
+
+    ``origins`` (Q, P, 3) may be NaN for invalid rays; ``directions`` (Q, P, 3) are unit vectors.
+    ``lanes`` packets are in flight at once (see the module docstring for the algorithm).
+    """
+    num_packets, packet = origins.shape[:2]
+    num_nodes = scene.node_children.shape[0]
     stack_size = scene.stack_size
-    num_nodes, leaf_size = scene.node_children.shape[0], scene.leaf_triangle_ids.shape[1]
+    lanes = max(1, min(lanes, num_packets))
+    leaf_lanes = max(1, lanes // LEAF_LANE_FRACTION)
+    children = scene.node_children
+    child_rows = jnp.where(children <= -2, num_nodes - children - 2, jnp.maximum(children, 0))
+    child_boxes = scene.node_bounds[child_rows].reshape(num_nodes, 12)  # both children per row
+
     safe_d = jnp.where(
         jnp.abs(directions) < 1e-20, jnp.where(directions < 0, -1e-20, 1e-20), directions
     )
-    inv_d = 1.0 / safe_d
-    ray_ok = jnp.all(jnp.isfinite(origins), axis=-1) & jnp.all(jnp.isfinite(directions), axis=-1)
-    origins = jnp.where(ray_ok[:, None], origins, 0.0)
-    weights = ray_ok.astype(origins.dtype)[:, None]
-    mean_origin = jnp.sum(origins * weights, 0) / jnp.maximum(jnp.sum(weights), 1.0)
-    mean_direction = jnp.sum(directions * weights, 0)
+    ray_ok = jnp.all(jnp.isfinite(origins), -1) & jnp.all(jnp.isfinite(directions), -1)
+    origins = jnp.where(ray_ok[..., None], origins, 0.0)
+    # (Q, 9, P): origin, direction, inverse direction, one contiguous row per packet.
+    rays_all = jnp.concatenate([origins, directions, 1.0 / safe_d], -1).transpose(0, 2, 1)
+    packet_ok = jnp.any(ray_ok, 1)
+    lane_ids = jnp.arange(lanes)
     slots = jnp.arange(stack_size)
-    o_cols = [origins[:, i] for i in range(3)]
-    inv_cols = [inv_d[:, i] for i in range(3)]
-    o_bcast = [c[:, None] for c in o_cols]
-    d_bcast = [directions[:, i, None] for i in range(3)]
 
-    def row_of(ref):
-        return jnp.where(ref <= -2, num_nodes - ref - 2, ref)
+    def step(cur, sp, stack, best_t, best_leaf, rays, ok):
+        is_leaf, is_node = cur <= -2, cur >= 0
+        # Internal nodes: slab test of both children for all P rays, one reduction per child.
+        node = jnp.where(is_node, cur, 0)
+        boxes = child_boxes[node].reshape(lanes, 2, 6)
+        o = [rays[:, None, a] for a in range(3)]
+        inv_d = [rays[:, None, 6 + a] for a in range(3)]
+        near, far = _child_entry([boxes[:, :, a, None] for a in range(6)], o, inv_d)
+        enter = ok[:, None] & (near <= far) & (near < best_t[:, None])
+        key = jnp.min(jnp.where(enter, near, jnp.inf), 2)  # (B, 2) nearest entry; inf: not entered
+        hit0 = (key[:, 0] < jnp.inf) & is_node
+        hit1 = (key[:, 1] < jnp.inf) & is_node
+        # Leaves: compact up to leaf_lanes lanes, test their rays against the leaf's triangles.
+        rank = jnp.cumsum(is_leaf) - 1
+        chosen = is_leaf & (rank < leaf_lanes)
+        lane_of = jnp.full((leaf_lanes,), lanes, jnp.int32)
+        lane_of = lane_of.at[jnp.where(chosen, rank, leaf_lanes)].set(lane_ids, mode="drop")
+        src = jnp.minimum(lane_of, lanes - 1)
+        leaf = jnp.where(lane_of < lanes, -cur[src] - 2, 0)
+        tri = scene.leaf_triangles[leaf]  # (M, 9, K)
+        tri = [tri[:, a, None, :] for a in range(9)]
+        r = rays[src]
+        t = _triangle_hit(
+            [r[:, a, :, None] for a in range(3)],
+            [r[:, 3 + a, :, None] for a in range(3)],
+            tri[0:3],
+            tri[3:6],
+            tri[6:9],
+        )
+        t_min = jnp.where(ok[src], jnp.min(t, 2), jnp.inf)  # (M, P)
+        t_lane = jnp.full((lanes, packet), jnp.inf, jnp.float32)
+        t_lane = t_lane.at[lane_of].set(t_min, mode="drop")  # back to the lanes
+        better = t_lane < best_t
+        best_t = jnp.where(better, t_lane, best_t)
+        best_leaf = jnp.where(better, (-cur - 2)[:, None], best_leaf)
+        # Next reference: nearer entered child, else the top of the stack.
+        first0 = key[:, 0] <= key[:, 1]
+        near_ref = jnp.where(hit0 & (~hit1 | first0), children[node, 0], children[node, 1])
+        far_ref = jnp.where(first0, children[node, 1], children[node, 0])
+        push, descend, wait = hit0 & hit1, hit0 | hit1, is_leaf & ~chosen
+        top = jnp.take_along_axis(stack, jnp.maximum(sp - 1, 0)[:, None], 1)[:, 0]
+        popped = jnp.where(sp > 0, top, -1)
+        nxt = jnp.where(descend, near_ref, jnp.where(wait, cur, popped))
+        stack = jnp.where(push[:, None] & (slots == sp[:, None]), far_ref[:, None], stack)
+        sp = jnp.where(descend, sp + push, jnp.where(wait, sp, jnp.maximum(sp - 1, 0)))
+        return nxt, sp, stack, best_t, best_leaf
 
-    def cond(state):
-        return state[0] != -1
+    def refill(state):
+        """Finished lanes write their packet's result and take the next packets of the queue."""
+        cur, sp, stack, best_t, best_leaf, rays, ok, pkt, queue, out = state
+        done = (cur == -1) & (pkt < num_packets)
+        out = out.at[jnp.where(done, pkt, num_packets)].set(best_leaf, mode="drop")
+        new = jnp.where(done, jnp.minimum(queue + jnp.cumsum(done) - 1, num_packets), pkt)
+        src = jnp.minimum(new, num_packets - 1)
+        rays = jnp.where(done[:, None, None], rays_all[src], rays)
+        ok = jnp.where(done[:, None], ray_ok[src], ok)
+        start = jnp.where((new < num_packets) & packet_ok[src], scene.root, -1)
+        cur = jnp.where(done, start, cur)
+        sp = jnp.where(done, 0, sp)
+        best_t = jnp.where(done[:, None], jnp.inf, best_t)
+        best_leaf = jnp.where(done[:, None], -1, best_leaf)
+        queue = jnp.minimum(queue + jnp.sum(done), num_packets)
+        return cur, sp, stack, best_t, best_leaf, rays, ok, new, queue, out
 
     def body(state):
-        cur, sp, stack, best_t, best_slot = state
-        is_leaf = cur <= -2
-        near, far = _box_entry(scene.node_bounds[row_of(cur)], o_cols, inv_cols)
-        enter = ray_ok & (near <= far) & (near < best_t)
-        # Leaf: the entering rays test the leaf's triangles.
-        leaf = jnp.where(is_leaf, -cur - 2, 0)
-        tris = scene.leaf_triangles[leaf]
-        t = _triangle_hit(o_bcast, d_bcast, tris[0:3], tris[3:6], tris[6:9])  # (P, K)
-        t = jnp.where((enter & is_leaf)[:, None], t, jnp.inf)
-        t_min = t[:, 0]
-        for k in range(1, leaf_size):
-            t_min = jnp.minimum(t_min, t[:, k])
-        first = jnp.full(t_min.shape, leaf_size - 1, jnp.int32)
-        for k in reversed(range(leaf_size - 1)):
-            first = jnp.where(t[:, k] == t_min, k, first)
-        better = t_min < best_t
-        best_t = jnp.where(better, t_min, best_t)
-        best_slot = jnp.where(better, leaf * leaf_size + first, best_slot)
-        # Internal node entered by any ray: go to the nearer child, push the farther one.
-        children = scene.node_children[jnp.where(is_leaf, 0, cur)]
-        box0 = scene.node_bounds[row_of(children[0])]
-        box1 = scene.node_bounds[row_of(children[1])]
-        key0 = jnp.dot(box0[:3] + box0[3:] - 2.0 * mean_origin, mean_direction)
-        key1 = jnp.dot(box1[:3] + box1[3:] - 2.0 * mean_origin, mean_direction)
-        first_is_0 = key0 <= key1
-        near_ref = jnp.where(first_is_0, children[0], children[1])
-        far_ref = jnp.where(first_is_0, children[1], children[0])
-        descend = jnp.any(enter) & ~is_leaf
-        popped = jnp.where(sp > 0, stack[jnp.maximum(sp - 1, 0)], -1)
-        next_ref = jnp.where(descend, near_ref, popped)
-        stack = jnp.where(descend & (slots == sp), far_ref, stack)
-        sp = jnp.where(descend, sp + 1, jnp.maximum(sp - 1, 0))
-        return next_ref, sp, stack, best_t, best_slot
+        cur, sp, stack, best_t, best_leaf, rays, ok, pkt, queue, out = state
+        cur, sp, stack, best_t, best_leaf = step(cur, sp, stack, best_t, best_leaf, rays, ok)
+        state = (cur, sp, stack, best_t, best_leaf, rays, ok, pkt, queue, out)
+        any_done = jnp.any((cur == -1) & (pkt < num_packets))
+        return jax.lax.cond(any_done, refill, lambda s: s, state)
 
-    num_rays = origins.shape[0]
     init = (
-        jnp.where(jnp.any(ray_ok), scene.root, -1),
-        jnp.int32(0),
-        jnp.full((stack_size,), -1, jnp.int32),
-        jnp.full((num_rays,), jnp.inf, jnp.float32),
-        jnp.full((num_rays,), -1, jnp.int32),
+        jnp.where(packet_ok[:lanes], scene.root, -1),
+        jnp.zeros((lanes,), jnp.int32),
+        jnp.full((lanes, stack_size), -1, jnp.int32),
+        jnp.full((lanes, packet), jnp.inf, jnp.float32),
+        jnp.full((lanes, packet), -1, jnp.int32),
+        rays_all[:lanes],
+        ray_ok[:lanes],
+        lane_ids,
+        jnp.int32(lanes),
+        jnp.full((num_packets, packet), -1, jnp.int32),
     )
-    best_slot = jax.lax.while_loop(cond, body, init)[4]
-    flat_ids = scene.leaf_triangle_ids.reshape(-1)
-    return jnp.where(best_slot >= 0, flat_ids[jnp.maximum(best_slot, 0)], -1)
+    return jax.lax.while_loop(lambda s: jnp.any(s[7] < num_packets), body, init)[-1]
+
+
+def _leaf_triangle(scene: SceneGraph, origins: Array, directions: Array, leaf: Array) -> Array:
+    """The nearest-hit triangle of each ray (R,) within its winning leaf (R,) (-1: a miss)."""
+    hit = leaf >= 0
+    leaf = jnp.maximum(leaf, 0)
+    tri = scene.leaf_triangles[leaf]  # (R, 9, K)
+    o = jnp.where(hit[:, None], origins, 0.0)
+    t = _triangle_hit(
+        [o[:, a, None] for a in range(3)],
+        [directions[:, a, None] for a in range(3)],
+        [tri[:, a] for a in range(3)],
+        [tri[:, a] for a in range(3, 6)],
+        [tri[:, a] for a in range(6, 9)],
+    )
+    slot = jnp.argmin(t, axis=1)  # first of equal distances, as the traversal's test
+    triangle = jnp.take_along_axis(scene.leaf_triangle_ids[leaf], slot[:, None], 1)[:, 0]
+    return jnp.where(hit, triangle, -1)
 
 
 def _safe_normalize(v: Array) -> tuple[Array, Array]:
@@ -179,15 +250,24 @@ def _safe_normalize(v: Array) -> tuple[Array, Array]:
 
 
 def _differentiable_hit(scene: SceneGraph, origin, direction, triangle):
-    """Recompute (t, barycentric) of one ray on a known triangle, differentiably."""
+    """Recompute (t, barycentric) of one ray on a known triangle, differentiably.
+
+    ``t`` uses the plane form ``n . (v0 - o) / (n . d)`` with ``n = e1 x e2``, which keeps float32
+    errors ~30x smaller than Moller-Trumbore's triple product for small, distant triangles; the
+    barycentric coordinates come from Moller-Trumbore (clipped to the triangle).
+    """
     hit = triangle >= 0
     origin = jnp.where(hit, origin, 0.0)
     direction = jnp.where(hit, direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
     tri = scene.triangles[jnp.maximum(triangle, 0)]
     v0 = tri[0]
     e1, e2 = tri[1] - v0, tri[2] - v0
-    t, u, v, _ = _moller_trumbore(origin, direction, v0, e1, e2)
-    t = jnp.where(hit, t, jnp.inf)
+    _, u, v, _ = _moller_trumbore(origin, direction, v0, e1, e2)
+    normal = jnp.cross(e1, e2)
+    facing = jnp.dot(normal, direction)
+    facing = jnp.where(jnp.abs(facing) > DET_EPS, facing, 1.0)
+    t = jnp.where(hit, jnp.dot(normal, v0 - origin) / facing, jnp.inf)
+    u, v = jnp.clip(u, 0.0, 1.0), jnp.clip(v, 0.0, 1.0)
     bary = jnp.where(hit, jnp.stack([1.0 - u - v, u, v]), 0.0)
     return t, bary
 
@@ -207,9 +287,10 @@ def raycast(
         origins: (..., 3) ray origins, world frame, metres.
         directions: (..., 3) ray directions, world frame, any non-zero length (normalised here).
         packet_size: consecutive rays that traverse the tree together (static). Exact for any
-            value; large packets (16-64) pay off when consecutive rays are coherent, e.g. a tile
-            of one camera's rays, and 1 suits unrelated rays.
-        chunk_size: rays per vmapped traversal batch (static). Both are speed knobs only.
+            value; packets of 16 pay off when consecutive rays are coherent, e.g. a 4 x 4 tile of
+            one camera's rays, and 1 suits unrelated rays.
+        chunk_size: rays in flight in the traversal loop (static): ``chunk_size // packet_size``
+            lanes. Both are speed knobs only.
 
     Returns:
         :class:`RayHit` with leading shape ``...``; ``t`` is in metres along the unit direction.
@@ -218,7 +299,8 @@ def raycast(
     directions = jnp.asarray(directions, jnp.float32)
     if origins.shape[-1:] != (3,) or directions.shape[-1:] != (3,):
         raise ValueError(
-            f"origins and directions must have shape (..., 3), got {origins.shape} and {directions.shape}"
+            "origins and directions must have shape (..., 3), "
+            f"got {origins.shape} and {directions.shape}"
         )
     shape = jnp.broadcast_shapes(origins.shape, directions.shape)
     o = jnp.broadcast_to(origins, shape).reshape(-1, 3)
@@ -235,10 +317,9 @@ def raycast(
         d_packets = jnp.pad(d_search, ((0, pad), (0, 0)), constant_values=1.0)
         o_packets = o_packets.reshape(num_packets, packet_size, 3)
         d_packets = d_packets.reshape(num_packets, packet_size, 3)
-        trace = lambda od: _traverse_packet(scene, od[0], od[1])  # noqa: E731
-        batch = max(1, min(num_packets, chunk_size // packet_size))
-        triangle = jax.lax.map(trace, (o_packets, d_packets), batch_size=batch)
-        triangle = triangle.reshape(-1)[:num]
+        leaf = _trace_packets(scene, o_packets, d_packets, chunk_size // packet_size)
+        leaf = leaf.reshape(-1)[:num]
+        triangle = _leaf_triangle(scene, o_search, d_search, leaf)
     t, bary = jax.vmap(lambda a, b, c: _differentiable_hit(scene, a, b, c))(o, d, triangle)
     hit = triangle >= 0
     object_id = jnp.where(hit, scene.triangle_object[jnp.maximum(triangle, 0)], -1)
