@@ -182,7 +182,9 @@ def step(
     moved = predict(key_motion, state, frame.motion, config.sigma_trans, config.sigma_rot)
     state = jax.tree.map(lambda a, b: jnp.where(frame.index > 0, a, b), moved, state)
 
-    views = render_batch(scene, state.poses, config.camera, config.grid, frame.tilt)
+    # Inactive slots cast invalid (NaN) rays, which the traversal retires at once.
+    render_poses = jnp.where(state.active[:, None], state.poses, jnp.nan)
+    views = render_batch(scene, render_poses, config.camera, config.grid, frame.tilt)
     match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
     h, w = config.grid.shape
     scores = jax.vmap(

@@ -61,12 +61,13 @@ class Sequence(eqx.Module):
             raise ValueError("a sequence needs at least one frame")
         if np.any(np.linalg.norm(emb, axis=-1) == 0):
             raise ValueError("patch_embeddings contains zero vectors (cosine undefined)")
-        motion = _as_finite("ego_motion", np.reshape(ego_motion, (-1, 4)), 2)
-        if np.shape(ego_motion)[-1:] != (4,) or motion.shape[0] != num_frames - 1:
+        empty = num_frames == 1 and np.size(ego_motion) == 0
+        if np.shape(ego_motion) != (num_frames - 1, 4) and not empty:
             raise ValueError(
                 f"ego_motion must have shape (T-1, 4) = ({num_frames - 1}, 4) for T = {num_frames} "
                 f"frames, got {np.shape(ego_motion)}"
             )
+        motion = _as_finite("ego_motion", np.reshape(ego_motion, (-1, 4)), 2)
         image_shape = (num_frames, camera.height, camera.width)
         if depth is not None:
             depth = _as_finite("depth", depth, 3)
