@@ -21,6 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from jaxloc._convert import as_float32, as_int32
 from jaxloc.camera import Camera, RayGrid
 from jaxloc.particles import (
     ParticleState,
@@ -37,14 +38,6 @@ from jaxloc.scores import ObservationConfig, match_patches, particle_log_likelih
 from jaxloc.sequence import Sequence
 
 
-def _as_float32(value) -> Array:
-    return jnp.asarray(value, jnp.float32)
-
-
-def _as_int32(value) -> Array:
-    return jnp.asarray(value, jnp.int32)
-
-
 class Region(eqx.Module):
     """A floor region for particle initialisation and injection (world frame, metres).
 
@@ -53,9 +46,9 @@ class Region(eqx.Module):
         floor_z: float32 floor height; camera heights are measured from it.
     """
 
-    lo: Array = eqx.field(converter=_as_float32)
-    hi: Array = eqx.field(converter=_as_float32)
-    floor_z: Array = eqx.field(converter=_as_float32)
+    lo: Array = eqx.field(converter=as_float32)
+    hi: Array = eqx.field(converter=as_float32)
+    floor_z: Array = eqx.field(converter=as_float32)
 
     @staticmethod
     def of_scene(scene: SceneGraph) -> Region:
@@ -83,9 +76,9 @@ class StepConfig(eqx.Module):
     observation: ObservationConfig
     kld: KLDConfig
     region: Region
-    sigma_trans: Array = eqx.field(default=0.05, converter=_as_float32)
-    sigma_rot: Array = eqx.field(default=0.05, converter=_as_float32)
-    inject_count: Array = eqx.field(default=0, converter=_as_int32)
+    sigma_trans: Array = eqx.field(default=0.05, converter=as_float32)
+    sigma_rot: Array = eqx.field(default=0.05, converter=as_float32)
+    inject_count: Array = eqx.field(default=0, converter=as_int32)
     inject_every: int = eqx.field(static=True, default=5)
 
 

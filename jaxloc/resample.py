@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from jaxloc._convert import as_float32, as_int32
 from jaxloc.geometry import wrap_angle
 from jaxloc.particles import ParticleState, normalized_weights, uniform_log_weights
 
@@ -105,14 +106,6 @@ def resample(
     return new_state, degenerate
 
 
-def _as_float32(value) -> Array:
-    return jnp.asarray(value, jnp.float32)
-
-
-def _as_int32(value) -> Array:
-    return jnp.asarray(value, jnp.int32)
-
-
 class KLDConfig(eqx.Module):
     """KLD-sampling settings (Fox 2001, AMCL's bound). Floats and counts traced; method static.
 
@@ -125,11 +118,11 @@ class KLDConfig(eqx.Module):
         method: ``"stratified"`` (default, as in the paper) or ``"systematic"``.
     """
 
-    epsilon: Array = eqx.field(default=0.1, converter=_as_float32)
-    z: Array = eqx.field(default=1.96, converter=_as_float32)
-    bin_sizes: Array = eqx.field(default=(0.2, 0.2, 0.2, 0.2), converter=_as_float32)
-    min_particles: Array = eqx.field(default=500, converter=_as_int32)
-    max_particles: Array = eqx.field(default=10000, converter=_as_int32)
+    epsilon: Array = eqx.field(default=0.1, converter=as_float32)
+    z: Array = eqx.field(default=1.96, converter=as_float32)
+    bin_sizes: Array = eqx.field(default=(0.2, 0.2, 0.2, 0.2), converter=as_float32)
+    min_particles: Array = eqx.field(default=500, converter=as_int32)
+    max_particles: Array = eqx.field(default=10000, converter=as_int32)
     method: str = eqx.field(static=True, default="stratified")
 
     def __check_init__(self):

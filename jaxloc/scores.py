@@ -23,6 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from jaxloc._convert import as_float32
+
 SEMANTIC_VARIANTS = ("gated", "soft")
 DEPTH_VARIANTS = ("l1", "clipped")
 COLOR_VARIANTS = ("paper", "reference")
@@ -259,10 +261,6 @@ def color_score(rendered: Array, observed: Array, variant: str = "paper") -> Arr
     return jnp.clip(ssim, 0.0, 1.0) if variant == "paper" else 2.0 * ssim
 
 
-def _as_float32(value) -> Array:
-    return jnp.asarray(value, jnp.float32)
-
-
 class ObservationConfig(eqx.Module):
     """Observation-model settings. Variants and switches are static; weights are traced floats.
 
@@ -288,11 +286,11 @@ class ObservationConfig(eqx.Module):
     use_depth: bool = eqx.field(static=True, default=True)
     use_color: bool = eqx.field(static=True, default=True)
     clip_total: bool = eqx.field(static=True, default=False)
-    lambda_depth: Array = eqx.field(default=2.0, converter=_as_float32)
-    lambda_color: Array = eqx.field(default=2.0, converter=_as_float32)
-    sigma: Array = eqx.field(default=0.6, converter=_as_float32)
-    depth_clip: Array = eqx.field(default=0.5, converter=_as_float32)
-    depth_miss_error: Array = eqx.field(default=1.0, converter=_as_float32)
+    lambda_depth: Array = eqx.field(default=2.0, converter=as_float32)
+    lambda_color: Array = eqx.field(default=2.0, converter=as_float32)
+    sigma: Array = eqx.field(default=0.6, converter=as_float32)
+    depth_clip: Array = eqx.field(default=0.5, converter=as_float32)
+    depth_miss_error: Array = eqx.field(default=1.0, converter=as_float32)
 
     def __check_init__(self):
         _check_choice("semantic_variant", self.semantic_variant, SEMANTIC_VARIANTS)

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jax import Array
 from tqdm.auto import tqdm
 
+from jaxloc._convert import as_float32
 from jaxloc.camera import stride_grid
 from jaxloc.filter import Region, StepConfig, StepInfo, frames_on_grid, run_pass, step
 from jaxloc.geometry import uncompose_yaw
@@ -26,10 +27,6 @@ from jaxloc.resample import KLDConfig
 from jaxloc.scene import SceneGraph
 from jaxloc.scores import ObservationConfig
 from jaxloc.sequence import Sequence
-
-
-def _as_float32(value) -> Array:
-    return jnp.asarray(value, jnp.float32)
 
 
 class SG2LocConfig(eqx.Module):
@@ -52,11 +49,11 @@ class SG2LocConfig(eqx.Module):
     capacity: int = eqx.field(static=True, default=2500)
     strides: tuple[int, ...] = eqx.field(static=True, default=(20, 8, 4))
     box_half_widths: tuple[float, ...] = eqx.field(static=True, default=(0.8, 0.4))
-    yaw_half_range: Array = eqx.field(default=DEFAULT_BOX_YAW_HALF_RANGE, converter=_as_float32)
+    yaw_half_range: Array = eqx.field(default=DEFAULT_BOX_YAW_HALF_RANGE, converter=as_float32)
     observation: ObservationConfig = ObservationConfig()
     kld: KLDConfig = KLDConfig()
-    sigma_trans: Array = eqx.field(default=0.05, converter=_as_float32)
-    sigma_rot: Array = eqx.field(default=0.05, converter=_as_float32)
+    sigma_trans: Array = eqx.field(default=0.05, converter=as_float32)
+    sigma_rot: Array = eqx.field(default=0.05, converter=as_float32)
     inject_count: int = 0
     inject_every: int = eqx.field(static=True, default=5)
     region: Region | None = None

@@ -203,7 +203,7 @@ def test_ssim_gradient_is_finite_on_flat_images_and_rejects_small_images():
 def test_max_total_for_paper_reference_and_semantic_only():
     assert float(S.ObservationConfig().max_total()) == 6.0
     assert float(S.ObservationConfig.reference().max_total()) == 6.0
-    semantic_only = S.ObservationConfig(use_depth=False, use_color=False)
+    semantic_only = S.ObservationConfig(use_depth=False, use_color=False, sigma=0.2)
     assert float(semantic_only.max_total()) == 2.0
     assert float(S.ObservationConfig(lambda_depth=0.5, use_color=False).max_total()) == 2.5
 
@@ -231,12 +231,14 @@ def test_log_likelihood_matches_eq2_and_does_not_retrace_for_new_weights():
         float(S.log_likelihood(reference, -0.5, -1.0, -2.0)), -(6.0**2) / (2 * 0.36), rtol=1e-5
     )
     assert float(S.log_likelihood(reference, 2.0, 2.0, 2.0)) == 0.0
-    semantic_only = S.ObservationConfig(use_depth=False, use_color=False)
+    semantic_only = S.ObservationConfig(use_depth=False, use_color=False, sigma=0.2)
     np.testing.assert_allclose(
         float(S.log_likelihood(semantic_only, 1.5)), -(0.5**2) / (2 * 0.04), rtol=1e-5
     )
     with pytest.raises(ValueError, match="use_depth"):
         S.log_likelihood(S.ObservationConfig(), 1.0)
+    # The default sigma is the paper's 0.2 scaled to eq. (2)'s threefold range (and the authors').
+    assert float(S.ObservationConfig().sigma) == pytest.approx(0.6)
 
 
 def test_observation_config_validates():
@@ -267,7 +269,7 @@ def test_particle_log_likelihood_combines_the_scores_under_vmap():
         s = numpy_semantic(patches, objects, valid, rendered_object[i], "gated")
         s_d, _ = numpy_depth(rendered_depth[i], sensor, "l1")
         s_i = np.clip(numpy_ssim(rendered_rgb[i], observed), 0, 1)
-        expected = -((6.0 - (s + 2 * s_d + 2 * s_i)) ** 2) / (2 * 0.2**2)
+        expected = -((6.0 - (s + 2 * s_d + 2 * s_i)) ** 2) / (2 * 0.6**2)
         np.testing.assert_allclose(float(out.log_likelihood[i]), expected, rtol=1e-4)
         np.testing.assert_allclose(float(out.depth[i]), s_d, atol=1e-5)
     with pytest.raises(ValueError, match="rendered_rgb"):
