@@ -8,7 +8,7 @@ Two published methods as pure, jit/vmap-able functions:
   (:mod:`jaxloc.triplet`).
 """
 
-from jaxloc import filter, metrics, particles, resample, scores, sg2loc
+from jaxloc import filter, lsq, metrics, particles, resample, scores, sg2loc, triplet
 from jaxloc.camera import Camera, RayGrid, patch_grid, stride_grid
 from jaxloc.raycast import RayHit, raycast
 from jaxloc.render import Render, render, render_batch
@@ -32,9 +32,11 @@ __all__ = [
     "save_scene",
     "stride_grid",
     "filter",
+    "lsq",
     "metrics",
     "particles",
     "resample",
     "scores",
     "sg2loc",
+    "triplet",
 ]

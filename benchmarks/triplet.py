@@ -1,0 +1,130 @@
+"""Per-query M2Loc/TripletLoc timings on the real HeLiPR maps, beside networkx's exact clique.
+
+For each map: build the TripletLoc map once, localize seeded scan-like queries, and report the
+query descriptor time and the match + clique + pose time (median, p90, after compilation). On the
+same consistency graphs, time networkx's exact maximum clique (``max_weight_clique``) and the host
+exact solver, and count how often the jitted ``max_clique`` reaches the exact size.
+
+    JAX_PLATFORMS=cpu python benchmarks/triplet.py --queries 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import networkx as nx
+import numpy as np
+
+from jaxloc.datasets.outdoor import make_query
+from jaxloc.triplet import (
+    build_map,
+    consistency_graph,
+    load_instance_map,
+    load_road_normals,
+    localize_scan,
+    max_clique_exact,
+    max_clique_with_info,
+    tripletloc_config,
+)
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "helipr_instance_maps"
+
+
+def graph_of(triplet_map, q, result_config):
+    """Rebuild the final consistency graph of a query (numpy) for the exact solvers."""
+    import jax.numpy as jnp
+
+    from jaxloc.triplet import describe_query, register_query
+
+    classes = result_config.descriptor.classes
+    cap = max(32, 1 << (len(q.points) - 1).bit_length())
+    pts = np.zeros((cap, 3), np.float32)
+    pts[: len(q.points)] = q.points
+    cls = np.zeros(cap, np.int32)
+    cls[: len(q.points)] = [classes.index(int(label)) for label in q.labels]
+    mask = np.arange(cap) < len(q.points)
+    d, v = describe_query(
+        jnp.asarray(pts), jnp.asarray(cls), jnp.asarray(mask), result_config.descriptor
+    )
+    out = register_query(triplet_map, jnp.asarray(pts), jnp.asarray(cls), d, v)
+    valid = np.asarray(out.association_valid)
+    qa, ma = np.asarray(out.association_query), np.maximum(np.asarray(out.association_map), 0)
+    adjacency = np.asarray(
+        consistency_graph(pts[qa], np.asarray(triplet_map.points)[ma], valid, 1.0)
+    )
+    return adjacency, valid
+
+
+def networkx_max_clique(adjacency, valid):
+    graph = nx.Graph()
+    graph.add_nodes_from(np.flatnonzero(valid).tolist())
+    rows, cols = np.nonzero(np.triu(adjacency, 1))
+    graph.add_edges_from(zip(rows.tolist(), cols.tolist(), strict=True))
+    clique, _ = nx.max_weight_clique(graph, weight=None)  # exact branch and bound
+    return len(clique)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--queries", type=int, default=30)
+    parser.add_argument("--max-kept", type=int, default=40)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    config = tripletloc_config()
+    print(
+        "| map | queries | vertices (median) | associations (median) | desc ms med/p90 | "
+        "match+clique+pose ms med/p90 | max_clique ms med | networkx ms med | exact (host) ms med "
+        "| max_clique == exact | certified |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for name in sorted(p.name for p in DATA.iterdir()):
+        instance_map = load_instance_map(DATA / name)
+        normals = load_road_normals(DATA / name)
+        triplet_map = build_map(instance_map.points, instance_map.labels, config, normals)
+        rng = np.random.default_rng(args.seed)
+        queries = [
+            make_query(
+                instance_map.points, instance_map.labels, normals, rng, max_kept=args.max_kept
+            )
+            for _ in range(args.queries)
+        ]
+        for q in queries[:2]:
+            localize_scan(triplet_map, None, q.points, q.labels)  # compile both capacities
+        desc, match, ours, nx_ms, exact_ms, same, certified, sizes, assoc = ([] for _ in range(9))
+        for q in queries:
+            result = localize_scan(triplet_map, None, q.points, q.labels)
+            desc.append(result.descriptor_time_ms)
+            match.append(result.match_time_ms)
+            sizes.append(len(q.points))
+            assoc.append(result.num_associations)
+            adjacency, valid = graph_of(triplet_map, q, config)
+            max_clique_with_info(adjacency, valid)  # compile for this size
+            start = time.perf_counter()
+            mask, exact = max_clique_with_info(adjacency, valid)
+            mask = np.asarray(mask)
+            ours.append(1e3 * (time.perf_counter() - start))
+            start = time.perf_counter()
+            nx_size = networkx_max_clique(adjacency, valid)
+            nx_ms.append(1e3 * (time.perf_counter() - start))
+            start = time.perf_counter()
+            exact_size = int(max_clique_exact(adjacency, valid).sum())
+            exact_ms.append(1e3 * (time.perf_counter() - start))
+            assert nx_size == exact_size
+            same.append(int(mask.sum()) == exact_size)
+            certified.append(bool(exact))
+
+        def mp(values):
+            return f"{np.median(values):.1f} / {np.percentile(values, 90):.1f}"
+
+        print(
+            f"| {name} | {len(queries)} | {np.median(sizes):.0f} | {np.median(assoc):.0f} | "
+            f"{mp(desc)} | {mp(match)} | {np.median(ours):.1f} | {np.median(nx_ms):.1f} | "
+            f"{np.median(exact_ms):.1f} | {np.mean(same):.1%} | {np.mean(certified):.1%} |",
+            flush=True,
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,266 @@
+"""Robust SE(3) pose least squares, shared by the LiDAR and the camera pose refinements.
+
+:func:`solve_pose` minimises ``sum_i rho(|r_i(T)|^2) + |p(T)|^2`` over a pose ``T`` by optimising a
+tangent-space perturbation ``delta`` (6,) with ``T = T_init @ SE3.exp(delta)`` using
+``optimistix.least_squares`` (Levenberg-Marquardt or Gauss-Newton, ``throw=False``).
+
+* ``r_i`` are residual blocks returned by the caller's ``residual_fn(T, args)``: shape (M, D) (a
+  D-dimensional residual per correspondence, the robust loss acts on the block norm) or (M,) (scalar
+  residuals). ``p`` is an optional prior residual vector ``prior_fn(T, args) -> (P,)`` that is never
+  robustified (e.g. the road-surface-normal roll/pitch prior of TripletLoc).
+* Robust losses keep optimistix on a least-squares problem: Huber and Cauchy rescale each block by
+  ``sqrt(2 rho(s) ) / s`` (``s`` the block norm, ``rho`` the loss of the norm), written so the value
+  and the gradient stay finite at ``s = 0``; GNC-TLS (graduated non-convexity with a truncated
+  least-squares loss, Yang et al. 2020, as TripletLoc's GTSAM solver) runs a fixed number of
+  weighted solves while its control parameter ``mu`` grows geometrically from the convex start to
+  ``gnc_mu_final`` (a fixed count, so it jits; the weights of the last round are returned).
+
+Failures are values: ``PoseSolution.ok`` is False (and ``pose`` is ``T_init``, or the identity
+when ``T_init`` is itself non-finite) when the residuals or the result are non-finite or the solve
+did not converge. Nothing raises under jit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxlie
+import optimistix as optx
+from jax import Array
+
+LossKind = Literal["none", "huber", "cauchy", "gnc_tls"]
+ResidualFn = Callable[[jaxlie.SE3, Any], Array]
+
+
+class RobustLoss(eqx.Module):
+    """A robust loss on residual-block norms (metres, or whatever unit the residuals carry).
+
+    Attributes:
+        kind: "none" (plain least squares), "huber", "cauchy" or "gnc_tls" (static).
+        scale: the inlier threshold ``c`` (Huber/Cauchy scale, TLS truncation), residual units.
+        gnc_rounds: GNC-TLS outer rounds (static Python int, >= 2).
+        gnc_mu_final: the GNC control parameter reached in the last round (large = pure TLS).
+    """
+
+    kind: LossKind = eqx.field(static=True, default="none")
+    scale: float = 1.0
+    gnc_rounds: int = eqx.field(static=True, default=10)
+    gnc_mu_final: float = 1e4
+
+    def __check_init__(self) -> None:
+        if self.kind not in ("none", "huber", "cauchy", "gnc_tls"):
+            raise ValueError(f"unknown loss kind {self.kind!r}")
+        if isinstance(self.scale, float | int) and not self.scale > 0:
+            raise ValueError(f"loss scale must be > 0, got {self.scale}")
+        if self.gnc_rounds < 2:
+            raise ValueError(f"gnc_rounds must be >= 2, got {self.gnc_rounds}")
+
+
+class PoseSolution(eqx.Module):
+    """Result of :func:`solve_pose` (a pytree; batch axes come from vmap).
+
+    Attributes:
+        pose: the estimated pose (jaxlie.SE3), ``T_init`` when ``ok`` is False.
+        ok: bool scalar, True when the solve succeeded and everything is finite.
+        status: int32 scalar: 0 converged (optimistix reported success, or a Gauss-Newton step
+            from the result would gain less than 1e-5 of the cost: float32 stalls), 1 not
+            converged (step budget, non-finite iterate), 2 non-finite or empty input.
+        steps: int32 scalar, optimiser steps taken (summed over GNC rounds).
+        cost: float scalar, final ``0.5 * sum(robustified residuals^2)`` including the prior
+            (``inf`` when ``ok`` is False).
+        weights: (M,) float, per-block weights of the last GNC round (1 for other losses, 0 where
+            a block was non-finite).
+    """
+
+    pose: jaxlie.SE3
+    ok: Array
+    status: Array
+    steps: Array
+    cost: Array
+    weights: Array
+
+
+def _blocks(residuals: Array) -> Array:
+    """Residuals as blocks (M, D): a (M,) vector becomes (M, 1)."""
+    return residuals[:, None] if residuals.ndim == 1 else residuals
+
+
+def robust_block_scale(squared_norm: Array, loss: RobustLoss) -> Array:
+    """Factor ``sqrt(2 rho(s)) / s`` for block norms ``s = sqrt(squared_norm)``; finite grads at 0.
+
+    Multiplying a residual block by this factor makes its squared norm ``2 rho(s)``, so a
+    least-squares solver minimises ``sum rho``. Huber: ``rho = s^2/2`` for ``s <= c`` else
+    ``c s - c^2/2``; Cauchy: ``rho = c^2/2 log(1 + s^2/c^2)``. Other kinds give 1.
+    """
+    c = jnp.asarray(loss.scale, squared_norm.dtype)
+    if loss.kind == "huber":
+        outside = squared_norm > c * c
+        s = jnp.sqrt(jnp.where(outside, squared_norm, c * c))
+        return jnp.where(outside, jnp.sqrt(jnp.maximum(2.0 * c * s - c * c, 0.0)) / s, 1.0)
+    if loss.kind == "cauchy":
+        small = squared_norm < 1e-8 * c * c
+        safe = jnp.where(small, c * c, squared_norm)
+        ratio = c * c * jnp.log1p(safe / (c * c)) / safe
+        return jnp.where(small, 1.0 - squared_norm / (4.0 * c * c), jnp.sqrt(ratio))
+    return jnp.ones_like(squared_norm)
+
+
+def gnc_tls_weights(squared_norm: Array, mu: Array, scale: float | Array) -> Array:
+    """GNC-TLS weights (Yang et al. 2020) for squared block norms at control parameter ``mu``."""
+    c2 = jnp.asarray(scale, squared_norm.dtype) ** 2
+    lower = mu / (mu + 1.0) * c2
+    upper = (mu + 1.0) / mu * c2
+    safe = jnp.where(squared_norm > 0, squared_norm, c2)
+    middle = jnp.sqrt(c2 * mu * (mu + 1.0) / safe) - mu
+    return jnp.where(squared_norm <= lower, 1.0, jnp.where(squared_norm >= upper, 0.0, middle))
+
+
+def _make_solver(method: str, rtol: float, atol: float):
+    if method == "lm":
+        return optx.LevenbergMarquardt(rtol=rtol, atol=atol, norm=optx.rms_norm)
+    if method == "gn":
+        return optx.GaussNewton(rtol=rtol, atol=atol, norm=optx.rms_norm)
+    raise ValueError(f"method must be 'lm' or 'gn', got {method!r}")
+
+
+def _stationary(residuals: Callable[[Array], Array], delta: Array, rtol: float = 1e-5) -> Array:
+    """True when a Gauss-Newton step from ``delta`` would gain less than ``rtol * (cost + 1)``.
+
+    optimistix's Cauchy test compares successive accepted iterates; in float32 the trust region
+    can stall at the optimum rejecting steps whose gain is below rounding, so a converged solve
+    hits ``max_steps``. This decrement test accepts it (and rejects real non-convergence).
+    """
+    r, jac = residuals(delta), jax.jacfwd(residuals)(delta)
+    cost = 0.5 * jnp.sum(r * r)
+    gradient = jac.T @ r
+    hessian = jac.T @ jac
+    damping = 1e-9 * (jnp.trace(hessian) + 1.0)
+    step = jnp.linalg.solve(hessian + damping * jnp.eye(6, dtype=hessian.dtype), gradient)
+    decrement = 0.5 * jnp.dot(gradient, step)
+    return jnp.isfinite(decrement) & (decrement <= rtol * (cost + 1.0))
+
+
+def _finite_pose(T: jaxlie.SE3) -> Array:
+    return jnp.all(jnp.isfinite(T.parameters()))
+
+
+def solve_pose(
+    residual_fn: ResidualFn,
+    T_init: jaxlie.SE3,
+    args: Any = None,
+    *,
+    loss: RobustLoss | None = None,
+    prior_fn: ResidualFn | None = None,
+    max_steps: int = 50,
+    rtol: float = 1e-5,
+    atol: float = 1e-5,
+    method: Literal["lm", "gn"] = "lm",
+) -> PoseSolution:
+    """Robust least-squares pose ``T = T_init @ SE3.exp(delta)``; pure, jit/vmap-able.
+
+    Args:
+        residual_fn: ``residual_fn(T, args) -> (M, D) or (M,)`` residual blocks; blocks that should
+            not count may be zeroed by the caller (e.g. padded correspondences).
+        T_init: the initial pose (jaxlie.SE3, float32 or float64).
+        args: pytree passed through to ``residual_fn`` and ``prior_fn``.
+        loss: the robust loss (default: plain least squares).
+        prior_fn: optional ``prior_fn(T, args) -> (P,)`` prior residuals, never robustified.
+        max_steps: optimiser step budget per solve (static).
+        rtol, atol: optimistix convergence tolerances (static).
+        method: "lm" (Levenberg-Marquardt) or "gn" (Gauss-Newton).
+
+    Returns:
+        A :class:`PoseSolution`; on failure ``ok`` is False and ``pose`` is ``T_init``.
+    """
+    loss = RobustLoss() if loss is None else loss
+    solver = _make_solver(method, rtol, atol)
+    dtype = T_init.parameters().dtype
+    delta0 = jnp.zeros(6, dtype)
+
+    def pose_of(delta: Array) -> jaxlie.SE3:
+        return T_init @ jaxlie.SE3.exp(delta)
+
+    def raw_blocks(delta: Array) -> Array:
+        return _blocks(residual_fn(pose_of(delta), args))
+
+    def prior_vector(delta: Array) -> Array:
+        if prior_fn is None:
+            return jnp.zeros((0,), dtype)
+        return jnp.ravel(prior_fn(pose_of(delta), args))
+
+    def robust_residuals(delta: Array, block_weights: Array) -> Array:
+        blocks = raw_blocks(delta)
+        blocks = jnp.where(jnp.isfinite(blocks), blocks, 0.0)
+        squared = jnp.sum(blocks * blocks, axis=-1)
+        factor = robust_block_scale(squared, loss) * jnp.sqrt(block_weights)
+        return jnp.concatenate([jnp.ravel(blocks * factor[:, None]), prior_vector(delta)])
+
+    def solve(delta_start: Array, block_weights: Array):
+        sol = optx.least_squares(
+            lambda d, w: robust_residuals(d, w),
+            solver,
+            delta_start,
+            args=block_weights,
+            max_steps=max_steps,
+            throw=False,
+        )
+        converged = (sol.result == optx.RESULTS.successful) | _stationary(
+            lambda d: robust_residuals(d, block_weights), sol.value
+        )
+        return sol.value, converged, sol.stats["num_steps"]
+
+    initial_blocks = raw_blocks(delta0)
+    block_finite = jnp.all(jnp.isfinite(initial_blocks), axis=-1)
+    weights = block_finite.astype(dtype)
+    inputs_ok = (
+        jnp.all(block_finite)
+        & jnp.all(jnp.isfinite(prior_vector(delta0)))
+        & _finite_pose(T_init)
+        & (initial_blocks.shape[0] > 0)
+    )
+
+    delta, success, steps = solve(delta0, weights)
+    status_code = jnp.where(success, 0, 1).astype(jnp.int32)
+    if loss.kind == "gnc_tls":
+        squared = jnp.sum(jnp.where(block_finite[:, None], raw_blocks(delta), 0.0) ** 2, axis=-1)
+        c2 = jnp.asarray(loss.scale, dtype) ** 2
+        max_sq = jnp.max(jnp.where(block_finite, squared, 0.0))
+        mu0 = jnp.where(
+            2.0 * max_sq > c2, c2 / jnp.maximum(2.0 * max_sq - c2, 1e-12), loss.gnc_mu_final
+        )
+        mu0 = jnp.clip(mu0, 1e-9, loss.gnc_mu_final)
+        growth = (loss.gnc_mu_final / mu0) ** (1.0 / (loss.gnc_rounds - 1))
+
+        def gnc_round(carry, _):
+            delta, mu, steps, success, weights = carry
+            sq = jnp.sum(jnp.where(block_finite[:, None], raw_blocks(delta), 0.0) ** 2, axis=-1)
+            weights = gnc_tls_weights(sq, mu, loss.scale) * block_finite
+            new_delta, new_success, new_steps = solve(delta, weights)
+            finite = jnp.all(jnp.isfinite(new_delta))
+            delta = jnp.where(finite, new_delta, delta)
+            return (delta, mu * growth, steps + new_steps, new_success & finite, weights), None
+
+        (delta, _, steps, success, weights), _ = jax.lax.scan(
+            gnc_round, (delta, mu0, steps, success, weights), None, length=loss.gnc_rounds
+        )
+        status_code = jnp.where(success, 0, 1).astype(jnp.int32)
+
+    final = robust_residuals(delta, weights)
+    cost = 0.5 * jnp.sum(final * final)
+    T = pose_of(delta)
+    ok = inputs_ok & success & jnp.isfinite(cost) & _finite_pose(T)
+    identity = jnp.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype)
+    safe_init = jnp.where(_finite_pose(T_init), T_init.parameters(), identity)
+    pose = jaxlie.SE3(jnp.where(ok, T.parameters(), safe_init))
+    return PoseSolution(
+        pose=pose,
+        ok=ok,
+        status=jnp.where(inputs_ok, status_code, 2).astype(jnp.int32),
+        steps=jnp.asarray(steps, jnp.int32),
+        cost=jnp.where(ok, cost, jnp.inf),
+        weights=jnp.where(ok, weights, block_finite.astype(dtype)),
+    )

@@ -1,0 +1,100 @@
+"""M2Loc / TripletLoc one-shot global LiDAR localization from semantic instance centroids.
+
+Pipeline: instances from labelled points (:func:`cluster_instances`) -> multi-scale triplet
+descriptors (:func:`describe_points`, :func:`describe_map`) -> per-class top-k matching
+(:func:`match_descriptors`) -> consistency graph (:func:`consistency_graph`) -> maximum clique
+(:func:`max_clique`) with M2Loc's dynamic enhancement -> Kabsch + robust refinement with the
+road-surface-normal prior (:func:`register`). User entry points: :func:`build_map` and
+:func:`localize_scan`.
+"""
+
+from jaxloc.triplet._clique import max_clique, max_clique_exact, max_clique_with_info
+from jaxloc.triplet._clusters import (
+    ClusterConfig,
+    Instances,
+    cluster_instances,
+    euclidean_clusters,
+    fuse_instances,
+    voxel_downsample,
+)
+from jaxloc.triplet._descriptors import (
+    DescriptorConfig,
+    class_positions,
+    describe_map,
+    describe_points,
+    vertex_descriptor,
+)
+from jaxloc.triplet._io import (
+    GRAPH_CLASSES,
+    POLE,
+    TRAFFIC_SIGN,
+    TRUNK,
+    InstanceMap,
+    LabelledScan,
+    RoadNormals,
+    load_instance_map,
+    load_road_normals,
+    load_semantickitti_scan,
+    semantickitti_class_ids,
+)
+from jaxloc.triplet._matching import consistency_graph, match_descriptors
+from jaxloc.triplet._metrics import localization_errors, summarize_localization
+from jaxloc.triplet._pipeline import (
+    LocalizationResult,
+    QueryOutput,
+    TripletConfig,
+    TripletMap,
+    build_map,
+    describe_query,
+    localize_scan,
+    m2loc_config,
+    register_query,
+    tripletloc_config,
+)
+from jaxloc.triplet._registration import point_residuals, register, up_axis_prior, weighted_kabsch
+
+__all__ = [
+    "GRAPH_CLASSES",
+    "POLE",
+    "TRAFFIC_SIGN",
+    "TRUNK",
+    "ClusterConfig",
+    "DescriptorConfig",
+    "InstanceMap",
+    "Instances",
+    "LabelledScan",
+    "LocalizationResult",
+    "QueryOutput",
+    "RoadNormals",
+    "TripletConfig",
+    "TripletMap",
+    "build_map",
+    "class_positions",
+    "cluster_instances",
+    "consistency_graph",
+    "describe_map",
+    "describe_points",
+    "describe_query",
+    "euclidean_clusters",
+    "fuse_instances",
+    "load_instance_map",
+    "load_road_normals",
+    "load_semantickitti_scan",
+    "localization_errors",
+    "localize_scan",
+    "m2loc_config",
+    "match_descriptors",
+    "max_clique",
+    "max_clique_exact",
+    "max_clique_with_info",
+    "point_residuals",
+    "register",
+    "register_query",
+    "semantickitti_class_ids",
+    "summarize_localization",
+    "tripletloc_config",
+    "up_axis_prior",
+    "vertex_descriptor",
+    "voxel_downsample",
+    "weighted_kabsch",
+]

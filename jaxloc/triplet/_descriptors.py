@@ -1,0 +1,266 @@
+"""Multi-scale triplet descriptors (TripletLoc, M2Loc) as padded arrays.
+
+A vertex ``v`` (instance centroid) and each pair ``(a, b)`` of its neighbours whose 3D distance to
+``v`` lies in a scale's interval (``[0, L1]`` for the first scale, ``(L_{s-1}, L_s]`` after) form a
+triangle. Per semantic label combination ``{label_a, label_b}`` (unordered, 6 for 3 classes) the
+descriptor holds a histogram of the angle ``a-v-b`` in the xy plane (36 bins of 5 degrees over
+[0, 180]) and a histogram of either the mean xy edge length ``(|va| + |vb|) / 2`` (TripletLoc:
+40 bins over the scale's interval, 0.5 m for [0, 20]), the length ratio ``min/max`` (M2Loc, 40
+bins over [0, 1]) or both. The vector is L2-normalised; a vertex with fewer than 2 neighbours in a
+scale has no descriptor (``valid = False``, zeros). One scale at 20 m with "length" reproduces
+TripletLoc's 456-dimensional descriptor.
+
+The kernel describes one vertex from a padded neighbour list; :func:`describe_points` vmaps it
+over all vertices and scales of a small point set (a query scan, under jit), :func:`describe_map`
+feeds it host-built neighbour lists (scipy KD-tree) in jitted chunks for large maps.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from scipy.spatial import cKDTree
+
+from jaxloc.triplet._io import GRAPH_CLASSES
+
+LengthFeature = Literal["length", "ratio", "both"]
+
+
+class DescriptorConfig(eqx.Module):
+    """Descriptor parameters (all static).
+
+    Attributes:
+        classes: class ids of the graph vertices (other labels are rejected at the API boundary).
+        scale_edges: increasing interval ends ``(L1, ..., Ln)``, metres; ``(20.0,)`` is TripletLoc.
+        angle_bins: angle histogram bins over [0, 180] degrees.
+        length_bins: bins of the edge-length (or length-ratio) histogram.
+        length_feature: "length" (TripletLoc), "ratio" (M2Loc) or "both".
+    """
+
+    classes: tuple[int, ...] = eqx.field(static=True, default=GRAPH_CLASSES)
+    scale_edges: tuple[float, ...] = eqx.field(static=True, default=(20.0,))
+    angle_bins: int = eqx.field(static=True, default=36)
+    length_bins: int = eqx.field(static=True, default=40)
+    length_feature: LengthFeature = eqx.field(static=True, default="length")
+
+    def __check_init__(self) -> None:
+        edges = self.scale_edges
+        if len(edges) == 0 or any(e <= 0 for e in edges) or list(edges) != sorted(set(edges)):
+            raise ValueError(f"scale_edges must be positive and increasing, got {edges}")
+        if len(set(self.classes)) != len(self.classes) or len(self.classes) == 0:
+            raise ValueError(f"classes must be distinct and non-empty, got {self.classes}")
+        if self.length_feature not in ("length", "ratio", "both"):
+            raise ValueError(f"unknown length_feature {self.length_feature!r}")
+        if self.angle_bins < 1 or self.length_bins < 1:
+            raise ValueError("histogram bin counts must be >= 1")
+
+    @property
+    def num_scales(self) -> int:
+        return len(self.scale_edges)
+
+    @property
+    def num_combinations(self) -> int:
+        n = len(self.classes)
+        return n * (n + 1) // 2
+
+    @property
+    def num_length_histograms(self) -> int:
+        return 2 if self.length_feature == "both" else 1
+
+    @property
+    def dim(self) -> int:
+        """Descriptor length: combinations x (angle bins + length bins per length histogram)."""
+        per_combination = self.angle_bins + self.num_length_histograms * self.length_bins
+        return self.num_combinations * per_combination
+
+    def scale_bounds(self) -> np.ndarray:
+        """(S, 2) float32 ``(low, high]`` interval of each scale (the first includes 0)."""
+        edges = (0.0, *self.scale_edges)
+        return np.array([(edges[s], edges[s + 1]) for s in range(self.num_scales)], np.float32)
+
+    def combination_table(self) -> np.ndarray:
+        """(C, C) int32 combination index of an unordered class-position pair (TripletLoc order:
+        equal pairs first, then distinct pairs lexicographically)."""
+        n = len(self.classes)
+        table = np.zeros((n, n), np.int32)
+        for i in range(n):
+            table[i, i] = i
+        for index, (i, j) in enumerate(itertools.combinations(range(n), 2), start=n):
+            table[i, j] = table[j, i] = index
+        return table
+
+
+def class_positions(labels: Array, classes: tuple[int, ...]) -> Array:
+    """Position of each label in ``classes`` (int32, -1 for labels not in ``classes``)."""
+    match = labels[..., None] == jnp.asarray(classes, labels.dtype)
+    return jnp.where(jnp.any(match, axis=-1), jnp.argmax(match, axis=-1), -1).astype(jnp.int32)
+
+
+def vertex_descriptor(
+    center: Array,
+    neighbour_xyz: Array,
+    neighbour_class: Array,
+    neighbour_mask: Array,
+    bounds: Array,
+    config: DescriptorConfig,
+) -> tuple[Array, Array]:
+    """Descriptor of one vertex at one scale from a padded neighbour list.
+
+    Args:
+        center: (3,) vertex position (metres).
+        neighbour_xyz: (K, 3) candidate neighbour positions (same frame).
+        neighbour_class: (K,) int32 class positions (index into ``config.classes``).
+        neighbour_mask: (K,) bool, True for real neighbours (the vertex itself excluded).
+        bounds: (2,) the scale's ``(low, high]`` 3D distance interval (low = 0 includes 0).
+        config: the descriptor configuration.
+
+    Returns:
+        ``(descriptor (D,) float32 L2-normalised, valid bool)``; < 2 neighbours gives zeros.
+    """
+    offsets = neighbour_xyz - center
+    distance = jnp.sqrt(jnp.sum(offsets * offsets, axis=-1))
+    low, high = bounds[0], bounds[1]
+    in_scale = neighbour_mask & (distance <= high) & ((distance > low) | (low <= 0.0))
+    k = neighbour_xyz.shape[0]
+    pair_mask = in_scale[:, None] & in_scale[None, :] & jnp.triu(jnp.ones((k, k), bool), 1)
+
+    xy = offsets[:, :2]
+    cross = xy[:, None, 0] * xy[None, :, 1] - xy[:, None, 1] * xy[None, :, 0]
+    dot = xy @ xy.T
+    angle = jnp.arctan2(jnp.abs(cross), dot)  # [0, pi]
+    angle_bin = jnp.clip(
+        jnp.floor(angle * (config.angle_bins / jnp.pi)).astype(jnp.int32), 0, config.angle_bins - 1
+    )
+    length = jnp.sqrt(jnp.sum(xy * xy, axis=-1))
+    combination = jnp.asarray(config.combination_table())[
+        jnp.clip(neighbour_class, 0)[:, None], jnp.clip(neighbour_class, 0)[None, :]
+    ]
+    per_combination = config.angle_bins + config.num_length_histograms * config.length_bins
+    base = combination * per_combination
+    indices = [base + angle_bin]
+    offset = config.angle_bins
+    nb = config.length_bins
+    if config.length_feature in ("length", "both"):
+        mean_length = 0.5 * (length[:, None] + length[None, :])
+        span = jnp.maximum(high - low, 1e-6)
+        length_bin = jnp.clip(
+            jnp.floor((mean_length - low) / span * nb).astype(jnp.int32), 0, nb - 1
+        )
+        indices.append(base + offset + length_bin)
+        offset += nb
+    if config.length_feature in ("ratio", "both"):
+        longer = jnp.maximum(length[:, None], length[None, :])
+        shorter = jnp.minimum(length[:, None], length[None, :])
+        ratio = jnp.where(longer > 0, shorter / jnp.where(longer > 0, longer, 1.0), 1.0)
+        ratio_bin = jnp.clip(jnp.floor(ratio * nb).astype(jnp.int32), 0, nb - 1)
+        indices.append(base + offset + ratio_bin)
+    weight = pair_mask.astype(jnp.float32).ravel()
+    histogram = jnp.zeros(config.dim, jnp.float32)
+    for index in indices:
+        histogram = histogram.at[index.ravel()].add(weight)
+    norm = jnp.sqrt(jnp.sum(histogram * histogram))
+    valid = jnp.sum(in_scale) >= 2
+    descriptor = jnp.where(valid, histogram / jnp.where(norm > 0, norm, 1.0), 0.0)
+    return descriptor, valid
+
+
+def describe_points(
+    points: Array, classes: Array, mask: Array, config: DescriptorConfig
+) -> tuple[Array, Array]:
+    """Descriptors of every vertex of a small padded point set (a query), all scales; jit/vmap-able.
+
+    Args:
+        points: (N, 3) float vertex positions (any frame; descriptors are rigid-motion invariant
+            about z, and invariant to any rotation for the 3D neighbourhoods).
+        classes: (N,) int32 class positions (index into ``config.classes``).
+        mask: (N,) bool real vertices.
+        config: descriptor configuration.
+
+    Returns:
+        ``descriptors (S, N, D) float32`` and ``valid (S, N) bool`` (False for padding).
+    """
+    points, classes, mask = jnp.asarray(points), jnp.asarray(classes), jnp.asarray(mask, bool)
+    n = points.shape[0]
+    not_self = ~jnp.eye(n, dtype=bool)
+
+    def one_vertex(i, bounds):
+        return vertex_descriptor(points[i], points, classes, mask & not_self[i], bounds, config)
+
+    per_scale = jax.vmap(jax.vmap(one_vertex, in_axes=(0, None)), in_axes=(None, 0))
+    descriptors, valid = per_scale(jnp.arange(n), jnp.asarray(config.scale_bounds()))
+    return descriptors, valid & mask[None, :]
+
+
+def map_neighbour_lists(points: np.ndarray, low: float, high: float) -> np.ndarray:
+    """Host-side padded neighbour indices (N, K) of each point in the 3D interval (low, high];
+    -1 pads; K is the largest count (at least 2)."""
+    tree = cKDTree(points)
+    within = tree.query_ball_point(points, high)
+    lists = []
+    for i, candidates in enumerate(within):
+        candidates = np.asarray(candidates, np.int64)
+        candidates = candidates[candidates != i]
+        if low > 0 and candidates.size:
+            distance = np.linalg.norm(points[candidates] - points[i], axis=1)
+            candidates = candidates[distance > low]
+        lists.append(candidates)
+    capacity = max(2, max((c.size for c in lists), default=0))
+    padded = np.full((len(lists), capacity), -1, np.int64)
+    for i, candidates in enumerate(lists):
+        padded[i, : candidates.size] = candidates
+    return padded
+
+
+@eqx.filter_jit
+def _describe_chunk(centers, neighbour_xyz, neighbour_class, neighbour_mask, bounds, config):
+    return jax.vmap(vertex_descriptor, in_axes=(0, 0, 0, 0, None, None))(
+        centers, neighbour_xyz, neighbour_class, neighbour_mask, bounds, config
+    )
+
+
+def describe_map(
+    points: np.ndarray, class_positions_: np.ndarray, config: DescriptorConfig, chunk: int = 256
+) -> tuple[np.ndarray, np.ndarray]:
+    """Descriptors of all vertices of a (large) map, host-built neighbour lists, jitted chunks.
+
+    Args:
+        points: (N, 3) float map vertices (metres; centred coordinates are more accurate).
+        class_positions_: (N,) int class positions (index into ``config.classes``).
+        config: descriptor configuration.
+        chunk: vertices per jitted call (bounded memory).
+
+    Returns:
+        ``descriptors (S, N, D) float32`` and ``valid (S, N) bool`` (numpy).
+    """
+    points = np.asarray(points, np.float64)
+    n = points.shape[0]
+    descriptors = np.zeros((config.num_scales, n, config.dim), np.float32)
+    valid = np.zeros((config.num_scales, n), bool)
+    bounds_all = config.scale_bounds()
+    centred = (points - points.mean(axis=0)).astype(np.float32) if n else points.astype(np.float32)
+    for s in range(config.num_scales):
+        neighbours = map_neighbour_lists(points, float(bounds_all[s, 0]), float(bounds_all[s, 1]))
+        mask = neighbours >= 0
+        safe = np.where(mask, neighbours, 0)
+        for start in range(0, n, chunk):
+            stop = min(start + chunk, n)
+            rows = np.arange(start, stop)
+            pad = chunk - rows.size
+            rows_padded = np.concatenate([rows, np.zeros(pad, np.int64)])
+            d, v = _describe_chunk(
+                centred[rows_padded],
+                centred[safe[rows_padded]],
+                np.asarray(class_positions_, np.int32)[safe[rows_padded]],
+                mask[rows_padded] & (np.arange(chunk) < rows.size)[:, None],
+                bounds_all[s],
+                config,
+            )
+            descriptors[s, start:stop] = np.asarray(d)[: rows.size]
+            valid[s, start:stop] = np.asarray(v)[: rows.size]
+    return descriptors, valid

@@ -1,0 +1,456 @@
+"""One-shot global localization of a scan's instance centroids in an instance map (M2Loc).
+
+``build_map`` describes the map once (host neighbour lists, jitted descriptor chunks);
+``localize_scan`` validates a scan, describes it (jitted), matches per class and scale, finds the
+maximum clique of the consistency graph with the dynamic enhancement of M2Loc (eq. 6: start with
+scale-1 matches; while the clique has fewer than ``min_clique`` vertices and scales remain, add the
+next scale's matches and solve again), and estimates ``T_map_scan`` (Kabsch, then GNC-TLS with the
+optional road-surface-normal roll/pitch prior). Queries of the same capacity reuse one compilation.
+"""
+
+from __future__ import annotations
+
+import collections
+import time
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from jaxloc.lsq import RobustLoss
+from jaxloc.triplet._clique import max_clique_with_info
+from jaxloc.triplet._descriptors import (
+    DescriptorConfig,
+    describe_map,
+    describe_points,
+)
+from jaxloc.triplet._io import RoadNormals
+from jaxloc.triplet._matching import consistency_graph, match_descriptors
+from jaxloc.triplet._registration import register
+
+#: Trace counts of the jitted query functions (tests use them to prove there is no retrace).
+TRACE_COUNTS: collections.Counter[str] = collections.Counter()
+
+
+class TripletConfig(eqx.Module):
+    """Localization parameters.
+
+    Attributes:
+        descriptor: descriptor configuration (classes, scales, histograms).
+        top_k: map matches per query vertex, class and scale.
+        consistency_threshold: metres, ``| |q_i - q_j| - |m_i - m_j| |`` bound of an edge.
+        min_clique: M2Loc's T: add scales while the clique is smaller than this.
+        min_inliers: fewer clique vertices than this gives ``valid = False``.
+        loss: robust loss of the pose refinement (GNC-TLS, 1 m, by default).
+        use_rsn: use the road-surface-normal prior when the map has RSN cells.
+        rot_delta_deg: added to an RSN cell's normal std (degrees) for the prior's sigma.
+        query_capacity: static padded query size (None: next power of two >= 32).
+        clique_compact_size, clique_max_nodes, clique_seeds: :func:`max_clique` parameters.
+        solver_steps: optimiser steps per solve.
+    """
+
+    descriptor: DescriptorConfig = DescriptorConfig()
+    top_k: int = eqx.field(static=True, default=25)
+    consistency_threshold: float = eqx.field(static=True, default=1.0)
+    min_clique: int = eqx.field(static=True, default=10)
+    min_inliers: int = eqx.field(static=True, default=3)
+    loss: RobustLoss = RobustLoss("gnc_tls", 1.0)
+    use_rsn: bool = eqx.field(static=True, default=True)
+    rot_delta_deg: float = eqx.field(static=True, default=1.0)
+    query_capacity: int | None = eqx.field(static=True, default=None)
+    clique_compact_size: int = eqx.field(static=True, default=128)
+    clique_max_nodes: int = eqx.field(static=True, default=4000)
+    clique_seeds: int = eqx.field(static=True, default=64)
+    solver_steps: int = eqx.field(static=True, default=30)
+
+    def __check_init__(self) -> None:
+        if self.top_k < 1 or self.min_inliers < 3 or self.min_clique < 1:
+            raise ValueError("top_k >= 1, min_inliers >= 3 and min_clique >= 1 are required")
+        if not self.consistency_threshold > 0:
+            raise ValueError("consistency_threshold must be > 0")
+
+
+def tripletloc_config(**overrides) -> TripletConfig:
+    """TripletLoc: one scale [0, 20] m, angle + edge-length histograms (456 dims)."""
+    return TripletConfig(**overrides)
+
+
+def m2loc_config(
+    num_scales: int = 3,
+    scale_edges: tuple[float, ...] = (20.0, 30.0, 40.0),
+    length_feature: str = "ratio",
+    **overrides,
+) -> TripletConfig:
+    """M2Loc "Multi-n-En": the first ``num_scales`` intervals of ``scale_edges``, angle +
+    length-ratio histograms, dynamic clique enhancement with T = 10."""
+    descriptor = DescriptorConfig(
+        scale_edges=tuple(scale_edges[:num_scales]), length_feature=length_feature
+    )
+    return TripletConfig(descriptor=descriptor, **overrides)
+
+
+class TripletMap(eqx.Module):
+    """A described instance map (a pytree; build with :func:`build_map`).
+
+    Attributes:
+        points: (Nm, 3) float32 vertices, map frame minus ``origin`` (metres).
+        classes: (Nm,) int32 class positions (index into ``config.descriptor.classes``).
+        descriptors: (S, Nm, D) float32; valid: (S, Nm) bool.
+        origin: (3,) float32, subtracted from map coordinates (precision).
+        rsn_xy: (M, 2) float32 RSN cell centres minus origin; rsn_normals: (M, 3) unit normals;
+            rsn_sigma: (M,) float32 prior sigma (radians). M = 1 dummy cell when absent.
+        has_rsn: static bool.
+        config: the configuration the descriptors were built with.
+    """
+
+    points: Array
+    classes: Array
+    descriptors: Array
+    valid: Array
+    origin: Array
+    rsn_xy: Array
+    rsn_normals: Array
+    rsn_sigma: Array
+    has_rsn: bool = eqx.field(static=True)
+    config: TripletConfig
+
+
+class LocalizationResult(NamedTuple):
+    """Result of :func:`localize_scan` (host numpy values).
+
+    Attributes:
+        pose: (4, 4) float64 ``T_map_scan`` (identity when not valid).
+        valid: clique of at least ``min_inliers`` and a converged, finite pose.
+        clique_size: vertices of the final clique.
+        inliers: (clique_size, 2) int64 (scan index, map index) pairs of the clique.
+        scales_used: how many scales the dynamic enhancement used.
+        clique_exact: whether the clique solver certified the clique as maximum.
+        num_associations: associations in the final graph.
+        descriptor_time_ms: query descriptor time; match_time_ms: match + clique + pose time.
+    """
+
+    pose: np.ndarray
+    valid: bool
+    clique_size: int
+    inliers: np.ndarray
+    scales_used: int
+    clique_exact: bool
+    num_associations: int
+    descriptor_time_ms: float
+    match_time_ms: float
+
+
+def _check_points_labels(points, labels, classes: tuple[int, ...], what: str):
+    points = np.asarray(points)
+    labels = np.asarray(labels)
+    if points.ndim != 2 or points.shape[-1] != 3:
+        raise ValueError(f"{what} points must have shape (N, 3), got {points.shape}")
+    if labels.shape != (points.shape[0],):
+        raise ValueError(f"{what} labels must have shape ({points.shape[0]},), got {labels.shape}")
+    if not np.issubdtype(labels.dtype, np.integer):
+        raise ValueError(f"{what} labels must be integer class ids, got dtype {labels.dtype}")
+    if not np.all(np.isfinite(points)):
+        raise ValueError(f"{what} points contain NaN or inf")
+    unknown = np.setdiff1d(np.unique(labels), np.asarray(classes))
+    if unknown.size:
+        raise ValueError(f"{what} labels {unknown.tolist()} are not in the classes {classes}")
+    if points.shape[0] > 1:
+        unique = np.unique(points, axis=0)
+        if unique.shape[0] != points.shape[0]:
+            raise ValueError(
+                f"{what} has {points.shape[0] - unique.shape[0]} duplicate point(s); fuse "
+                "coincident instances first (jaxloc.triplet.fuse_instances)"
+            )
+    return points.astype(np.float64), labels.astype(np.int64)
+
+
+def build_map(
+    map_points: np.ndarray,
+    map_labels: np.ndarray,
+    config: TripletConfig | None = None,
+    road_normals: RoadNormals | None = None,
+) -> TripletMap:
+    """Describe an instance map once, for reuse by every query.
+
+    Args:
+        map_points: (N, 3) instance centroids, map frame, metres.
+        map_labels: (N,) int class ids (e.g. 15 trunk, 17 pole, 18 traffic sign).
+        config: localization configuration (default TripletLoc).
+        road_normals: optional RSN cells for the roll/pitch prior.
+
+    Raises:
+        ValueError: bad shapes, NaN/inf, unknown labels, duplicates, or fewer than 3 vertices.
+    """
+    config = TripletConfig() if config is None else config
+    classes = config.descriptor.classes
+    points, labels = _check_points_labels(map_points, map_labels, classes, "map")
+    if points.shape[0] < 3:
+        raise ValueError(f"a map needs at least 3 vertices, got {points.shape[0]}")
+    if config.top_k > points.shape[0]:
+        raise ValueError(f"top_k={config.top_k} exceeds the {points.shape[0]} map vertices")
+    positions = np.searchsorted(np.sort(classes), labels)
+    positions = np.argsort(classes)[positions]
+    origin = points.mean(axis=0)
+    descriptors, valid = describe_map(points - origin, positions, config.descriptor)
+    if road_normals is not None and len(road_normals.xy):
+        rsn_xy = road_normals.xy - origin[:2]
+        normals = road_normals.normals
+        sigma = np.deg2rad(road_normals.std_deg + config.rot_delta_deg)
+        has_rsn = True
+    else:
+        rsn_xy, normals, sigma, has_rsn = (
+            np.zeros((1, 2)),
+            np.array([[0.0, 0, 1]]),
+            np.ones(1),
+            False,
+        )
+    return TripletMap(
+        points=jnp.asarray(points - origin, jnp.float32),
+        classes=jnp.asarray(positions, jnp.int32),
+        descriptors=jnp.asarray(descriptors),
+        valid=jnp.asarray(valid),
+        origin=jnp.asarray(origin, jnp.float32),
+        rsn_xy=jnp.asarray(rsn_xy, jnp.float32),
+        rsn_normals=jnp.asarray(normals, jnp.float32),
+        rsn_sigma=jnp.asarray(np.maximum(sigma, 1e-4), jnp.float32),
+        has_rsn=has_rsn,
+        config=config,
+    )
+
+
+@eqx.filter_jit
+def describe_query(
+    points: Array, classes: Array, mask: Array, config: DescriptorConfig
+) -> tuple[Array, Array]:
+    """Jitted :func:`describe_points` for padded queries ((Nq, 3), (Nq,), (Nq,))."""
+    TRACE_COUNTS["describe_query"] += 1
+    return describe_points(points, classes, mask, config)
+
+
+class QueryOutput(eqx.Module):
+    """Padded output of :func:`register_query` (A = S * Nq * k associations)."""
+
+    T_map_scan: Array
+    valid: Array
+    clique: Array
+    association_query: Array
+    association_map: Array
+    association_valid: Array
+    scales_used: Array
+    clique_exact: Array
+
+
+@eqx.filter_jit
+def register_query(
+    triplet_map: TripletMap,
+    points: Array,
+    classes: Array,
+    descriptors: Array,
+    descriptor_valid: Array,
+) -> QueryOutput:
+    """Match, build the consistency graph, clique with dynamic enhancement, pose; pure and jitted.
+
+    Args:
+        triplet_map: the described map.
+        points: (Nq, 3) float32 query vertices (scan frame); classes: (Nq,) int32 class positions.
+        descriptors: (S, Nq, D) and descriptor_valid (S, Nq) from :func:`describe_query`.
+
+    Returns:
+        A :class:`QueryOutput` with ``T_map_scan`` (4, 4) in the map frame (origin added back).
+    """
+    TRACE_COUNTS["register_query"] += 1
+    config = triplet_map.config
+    num_scales, nq, _ = descriptors.shape
+    k = config.top_k
+    match = jax.vmap(match_descriptors, in_axes=(0, 0, None, 0, 0, None, None))
+    map_index, _ = match(
+        descriptors,
+        descriptor_valid,
+        classes,
+        triplet_map.descriptors,
+        triplet_map.valid,
+        triplet_map.classes,
+        k,
+    )  # (S, Nq, k)
+    earlier = jnp.tril(jnp.ones((num_scales, num_scales), bool), -1)  # [s, s'] s' < s
+    # same[s, i, j, s', j']: association (s, i, j) repeats (s', i, j') of an earlier scale
+    same = map_index[:, :, :, None, None] == jnp.moveaxis(map_index, 0, 1)[None, :, None, :, :]
+    duplicate = jnp.any(same & earlier[:, None, None, :, None], axis=(3, 4))
+    assoc_valid = ((map_index >= 0) & ~duplicate).reshape(-1)
+    assoc_query = jnp.broadcast_to(jnp.arange(nq)[None, :, None], map_index.shape).reshape(-1)
+    assoc_map = map_index.reshape(-1)
+    assoc_scale = jnp.broadcast_to(jnp.arange(num_scales)[:, None, None], map_index.shape).reshape(
+        -1
+    )
+    query_xyz = points[assoc_query]
+    map_xyz = triplet_map.points[jnp.maximum(assoc_map, 0)]
+    per_scale = nq * k
+    total = num_scales * per_scale
+
+    def clique_of_prefix(size):
+        # Associations are scale-major: scales <= s are the first (s + 1) * Nq * k of them, so
+        # each stage builds only its own graph (a static prefix), and lax.switch runs only it.
+        def run():
+            adjacency = consistency_graph(
+                query_xyz[:size],
+                map_xyz[:size],
+                assoc_valid[:size],
+                config.consistency_threshold,
+            )
+            clique, exact = max_clique_with_info(
+                adjacency,
+                assoc_valid[:size],
+                compact_size=config.clique_compact_size,
+                max_nodes=config.clique_max_nodes,
+                num_seeds=config.clique_seeds,
+            )
+            return jnp.zeros(total, bool).at[:size].set(clique), exact
+
+        return run
+
+    stages = [clique_of_prefix((s + 1) * per_scale) for s in range(num_scales)]
+
+    def solve(scale):
+        return jax.lax.switch(scale, stages)
+
+    def keep_going(state):
+        scale, clique, _ = state
+        return (scale < 0) | ((jnp.sum(clique) < config.min_clique) & (scale < num_scales - 1))
+
+    def next_scale(state):
+        scale = state[0] + 1
+        clique, exact = solve(scale)
+        return scale, clique, exact
+
+    start = (jnp.int32(-1), jnp.zeros_like(assoc_valid), jnp.array(False))
+    scale, clique, exact = jax.lax.while_loop(keep_going, next_scale, start)
+    clique_size = jnp.sum(clique)
+
+    normal, sigma = None, None
+    if triplet_map.has_rsn and config.use_rsn:
+        weight = clique.astype(jnp.float32)
+        centre = jnp.sum(map_xyz[:, :2] * weight[:, None], 0) / jnp.maximum(jnp.sum(weight), 1.0)
+        cell = jnp.argmin(jnp.sum((triplet_map.rsn_xy - centre) ** 2, axis=1))
+        normal, sigma = triplet_map.rsn_normals[cell], triplet_map.rsn_sigma[cell]
+    # The pose only needs the clique: compact it to a static 2 * Nq pairs (a clique rarely holds
+    # more than one association per query vertex) so the solver sees small residual vectors.
+    _, chosen = jax.lax.top_k(clique.astype(jnp.int32), min(2 * nq, total))
+    solution, _ = register(
+        query_xyz[chosen],
+        map_xyz[chosen],
+        clique[chosen],
+        loss=config.loss,
+        normal=normal,
+        normal_sigma=sigma,
+        max_steps=config.solver_steps,
+    )
+    valid = solution.ok & (clique_size >= config.min_inliers)
+    matrix = solution.pose.as_matrix()
+    matrix = matrix.at[:3, 3].add(triplet_map.origin)
+    matrix = jnp.where(valid, matrix, jnp.eye(4, dtype=matrix.dtype))
+    return QueryOutput(
+        T_map_scan=matrix,
+        valid=valid,
+        clique=clique,
+        association_query=assoc_query,
+        association_map=assoc_map,
+        association_valid=assoc_valid & (assoc_scale <= scale),
+        scales_used=scale + 1,
+        clique_exact=exact,
+    )
+
+
+def _capacity(n: int, config: TripletConfig) -> int:
+    if config.query_capacity is not None:
+        if n > config.query_capacity:
+            raise ValueError(f"scan has {n} vertices, above query_capacity={config.query_capacity}")
+        return config.query_capacity
+    return max(32, 1 << (n - 1).bit_length())
+
+
+def _invalid_result() -> LocalizationResult:
+    return LocalizationResult(np.eye(4), False, 0, np.zeros((0, 2), np.int64), 0, True, 0, 0.0, 0.0)
+
+
+def localize_scan(
+    map_points: np.ndarray | TripletMap,
+    map_labels: np.ndarray | None,
+    scan_points: np.ndarray,
+    scan_labels: np.ndarray,
+    config: TripletConfig | None = None,
+) -> LocalizationResult:
+    """Global localization of a scan's instance centroids in an instance map.
+
+    Args:
+        map_points: (N, 3) map instance centroids (map frame, metres), or a prebuilt
+            :class:`TripletMap` (then ``map_labels`` must be None and ``config`` is the map's).
+        map_labels: (N,) int class ids (15 trunk, 17 pole, 18 traffic sign by default).
+        scan_points: (Nq, 3) scan instance centroids (scan frame, metres).
+        scan_labels: (Nq,) int class ids.
+        config: localization configuration (default TripletLoc; ignored with a prebuilt map).
+
+    Returns:
+        A :class:`LocalizationResult`; ``pose`` is the 4x4 ``T_map_scan``. Fewer than 3 scan
+        vertices (or an empty scan) give ``valid = False``.
+
+    Raises:
+        ValueError: bad shapes, NaN/inf, unknown labels or duplicate points in the map or the scan.
+    """
+    if isinstance(map_points, TripletMap):
+        if map_labels is not None:
+            raise ValueError("pass map_labels=None with a prebuilt TripletMap")
+        triplet_map = map_points
+    else:
+        triplet_map = build_map(map_points, map_labels, config)
+    config = triplet_map.config
+    classes = config.descriptor.classes
+    points, labels = _check_points_labels(scan_points, scan_labels, classes, "scan")
+    n = points.shape[0]
+    if n < 3:
+        return _invalid_result()
+    capacity = _capacity(n, config)
+    positions = np.array([classes.index(int(label)) for label in labels], np.int32)
+    padded_points = np.zeros((capacity, 3), np.float32)
+    padded_points[:n] = points
+    padded_classes = np.zeros(capacity, np.int32)
+    padded_classes[:n] = positions
+    mask = np.arange(capacity) < n
+
+    start = time.perf_counter()
+    descriptors, descriptor_valid = jax.block_until_ready(
+        describe_query(
+            jnp.asarray(padded_points),
+            jnp.asarray(padded_classes),
+            jnp.asarray(mask),
+            config.descriptor,
+        )
+    )
+    middle = time.perf_counter()
+    out = jax.block_until_ready(
+        register_query(
+            triplet_map,
+            jnp.asarray(padded_points),
+            jnp.asarray(padded_classes),
+            descriptors,
+            descriptor_valid,
+        )
+    )
+    end = time.perf_counter()
+    clique = np.asarray(out.clique)
+    inliers = np.stack(
+        [np.asarray(out.association_query)[clique], np.asarray(out.association_map)[clique]], 1
+    ).astype(np.int64)
+    return LocalizationResult(
+        pose=np.asarray(out.T_map_scan, np.float64),
+        valid=bool(out.valid),
+        clique_size=int(clique.sum()),
+        inliers=inliers,
+        scales_used=int(out.scales_used),
+        clique_exact=bool(out.clique_exact),
+        num_associations=int(np.asarray(out.association_valid).sum()),
+        descriptor_time_ms=1e3 * (middle - start),
+        match_time_ms=1e3 * (end - middle),
+    )
