@@ -76,6 +76,17 @@ def _check_positive(name: str, value) -> None:
         raise ValueError(f"{name} must be a positive finite scalar, got {value!r}")
 
 
+def _check_region(lo, hi, heights) -> tuple[Array, Array, Array]:
+    """The float32 arrays of a floor region (2,), (2,) and its camera heights (H,), validated."""
+    lo, hi = jnp.asarray(lo, jnp.float32), jnp.asarray(hi, jnp.float32)
+    _check_shape("lo", lo, (2,))
+    _check_shape("hi", hi, (2,))
+    heights = jnp.asarray(heights, jnp.float32)
+    if heights.ndim != 1 or heights.shape[0] < 1:
+        raise ValueError(f"heights must be a non-empty 1-D array, got shape {heights.shape}")
+    return lo, hi, heights
+
+
 def _check_state(state: ParticleState) -> None:
     n = state.poses.shape[0]
     _check_shape("state.poses", state.poses, (n, 4))
@@ -190,12 +201,7 @@ def init_region(
         A :class:`ParticleState` of capacity N.
     """
     _check_capacity(capacity)
-    lo, hi = jnp.asarray(lo, jnp.float32), jnp.asarray(hi, jnp.float32)
-    _check_shape("lo", lo, (2,))
-    _check_shape("hi", hi, (2,))
-    heights = jnp.asarray(heights, jnp.float32)
-    if heights.ndim != 1 or heights.shape[0] < 1:
-        raise ValueError(f"heights must be a non-empty 1-D array, got shape {heights.shape}")
+    lo, hi, heights = _check_region(lo, hi, heights)
     _check_positive("cell_size", cell_size)
     _check_positive("poses_per_cell", poses_per_cell)
     extent = jnp.maximum(hi - lo, 0.0)
@@ -427,12 +433,7 @@ def inject_uniform(
         heights: (H,) heights above the floor (metres).
     """
     _check_state(state)
-    lo, hi = jnp.asarray(lo, jnp.float32), jnp.asarray(hi, jnp.float32)
-    _check_shape("lo", lo, (2,))
-    _check_shape("hi", hi, (2,))
-    heights = jnp.asarray(heights, jnp.float32)
-    if heights.ndim != 1 or heights.shape[0] < 1:
-        raise ValueError(f"heights must be a non-empty 1-D array, got shape {heights.shape}")
+    lo, hi, heights = _check_region(lo, hi, heights)
     n = state.capacity
     key_xy, key_height, key_yaw = jax.random.split(key, 3)
     xy = jax.random.uniform(key_xy, (n, 2), minval=lo, maxval=jnp.maximum(hi, lo))

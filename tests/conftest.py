@@ -330,3 +330,26 @@ def cast_padded(scene: SceneGraph, origins, directions):
     d = np.ones((NUM_RAYS, 3), np.float32)
     o[:n], d[:n] = origins, directions
     return jax.tree.map(lambda a: np.asarray(a)[:n], cast(scene, o, d))
+
+
+# -------------------------------------------------------------------- numpy frame reference
+# Right-handed elementary rotations and the camera axes in the body frame (x forward, y left, z up):
+# camera x (right) = body -y, camera y (down) = body -z, camera z (forward) = body +x.
+
+
+def rot_z(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def rot_y(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def rot_x(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+BODY_CAM = np.column_stack([[0, -1, 0], [0, 0, -1], [1, 0, 0]]).astype(float)

@@ -8,6 +8,7 @@ import jax.numpy as jnp
 import jaxlie
 import numpy as np
 import pytest
+from conftest import BODY_CAM, rot_x, rot_y, rot_z
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -34,26 +35,6 @@ small_motion = st.tuples(f32(-5, 5), f32(-5, 5), f32(-1, 1), angle).map(
 )
 
 
-def _rz(a):
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
-def _ry(a):
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-
-
-def _rx(a):
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-
-
-# Camera axes in the body frame (x forward, y left, z up): camera x (right) = body -y, camera y
-# (down) = body -z, camera z (forward) = body +x.
-BODY_CAM = np.column_stack([[0, -1, 0], [0, 0, -1], [1, 0, 0]]).astype(float)
-
-
 def _angle_close(a, b, atol=1e-5):
     return abs((float(a) - float(b) + np.pi) % (2 * np.pi) - np.pi) <= atol
 
@@ -70,7 +51,7 @@ def test_level_camera_at_yaw_zero_looks_along_plus_x():
 def test_yaw_turns_counter_clockwise(yaw):
     r = np.asarray(r_world_cam(jnp.float32(yaw), None))
     np.testing.assert_allclose(r @ [0, 0, 1], [np.cos(yaw), np.sin(yaw), 0], atol=1e-6)
-    np.testing.assert_allclose(r, _rz(yaw) @ BODY_CAM, atol=1e-6)
+    np.testing.assert_allclose(r, rot_z(yaw) @ BODY_CAM, atol=1e-6)
 
 
 def test_yaw_quarter_turn_looks_along_plus_y():
@@ -96,7 +77,7 @@ def test_pitch_positive_looks_down_and_roll_positive_raises_left_side():
 @given(angle, f32(-1.4, 1.4), f32(-1.0, 1.0))
 def test_tilted_rotation_matches_written_out_product(yaw, pitch, roll):
     r = np.asarray(r_world_cam(jnp.float32(yaw), jnp.array([pitch, roll], jnp.float32)))
-    want = _rz(yaw) @ _ry(pitch) @ _rx(roll) @ BODY_CAM
+    want = rot_z(yaw) @ rot_y(pitch) @ rot_x(roll) @ BODY_CAM
     np.testing.assert_allclose(r, want, atol=2e-6)
     np.testing.assert_allclose(r @ r.T, np.eye(3), atol=2e-6)
     assert np.linalg.det(r) == pytest.approx(1.0, abs=1e-5)
@@ -129,7 +110,7 @@ def test_ego_motion_is_in_the_body_frame():
     rng = np.random.default_rng(0)
     for _ in range(5):
         pa, pb = rng.uniform(-5, 5, 4).astype(np.float32), rng.uniform(-5, 5, 4).astype(np.float32)
-        want = _rz(-pa[3]) @ (pb[:3] - pa[:3])
+        want = rot_z(-pa[3]) @ (pb[:3] - pa[:3])
         np.testing.assert_allclose(np.asarray(ego(pa, pb))[:3], want, atol=1e-5)
 
 
@@ -145,7 +126,7 @@ def test_yaw_pose_to_se3_matches_matrices_and_transforms_points():
     pose = np.array([1.0, -2.0, 1.5, 0.7], np.float32)
     tilt = np.array([0.1, -0.2], np.float32)
     T = g.yaw_pose_to_se3(jnp.asarray(pose), jnp.asarray(tilt))
-    want = _rz(0.7) @ _ry(0.1) @ _rx(-0.2) @ BODY_CAM
+    want = rot_z(0.7) @ rot_y(0.1) @ rot_x(-0.2) @ BODY_CAM
     np.testing.assert_allclose(np.asarray(T.rotation().as_matrix()), want, atol=1e-6)
     np.testing.assert_allclose(np.asarray(T.translation()), pose[:3])
     pts = np.random.default_rng(0).normal(size=(7, 3)).astype(np.float32)
@@ -185,5 +166,5 @@ def test_pose_functions_vmap_over_poses():
     rb = np.asarray(jax.vmap(g.rotation_world_cam)(a[:, 3], d[:, :2]))
     for i in range(16):
         np.testing.assert_allclose(
-            rb[i], _rz(a[i, 3]) @ _ry(d[i, 0]) @ _rx(d[i, 1]) @ BODY_CAM, atol=2e-6
+            rb[i], rot_z(a[i, 3]) @ rot_y(d[i, 0]) @ rot_x(d[i, 1]) @ BODY_CAM, atol=2e-6
         )

@@ -11,7 +11,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import ROOM, box_room, render_batch_jit, render_jit, room_hits
+from conftest import (
+    BODY_CAM,
+    ROOM,
+    box_room,
+    render_batch_jit,
+    render_jit,
+    room_hits,
+    rot_x,
+    rot_y,
+    rot_z,
+)
 
 from jaxloc.camera import Camera, stride_grid
 from jaxloc.render import render, render_batch
@@ -33,31 +43,13 @@ SCENE_POSES = np.array(
 )
 
 
-def _rz(a):
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
-def _ry(a):
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-
-
-def _rx(a):
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-
-
-BODY_CAM = np.column_stack([[0, -1, 0], [0, 0, -1], [1, 0, 0]]).astype(float)
-
-
 def _world_rays(pose, tilt=(0.0, 0.0)):
     """Independent float64 ray directions (R, 3) in the world and the optical axis (3,)."""
     uv = np.asarray(GRID.uv, np.float64)
     d_cam = np.column_stack(
         [(uv[:, 0] - CAMERA.cx) / CAMERA.fx, (uv[:, 1] - CAMERA.cy) / CAMERA.fy, np.ones(len(uv))]
     )
-    r = _rz(pose[3]) @ _ry(tilt[0]) @ _rx(tilt[1]) @ BODY_CAM
+    r = rot_z(pose[3]) @ rot_y(tilt[0]) @ rot_x(tilt[1]) @ BODY_CAM
     return d_cam @ r.T, r[:, 2]
 
 
