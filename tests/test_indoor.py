@@ -259,8 +259,8 @@ def test_ego_motion_noise_matches_the_config():
     np.testing.assert_allclose(error[:, 3].std(), np.deg2rad(1.0), rtol=0.08)
 
 
-def test_stand_in_renderer_agrees_with_the_bvh_raycaster(episode):
-    """Object ids and z-depth of the host renderer equal jaxloc.raycast's on the map, under jit."""
+def test_frame_renderer_agrees_with_the_bvh_raycaster(episode):
+    """Object ids and z-depth of the frame renderer (jaxloc.render) equal jaxloc.raycast's."""
     room, scene = episode.room, episode.scene
     assert scene.num_objects == room.num_objects
     np.testing.assert_array_equal(np.asarray(scene.labels)[: room.num_objects], room.labels)

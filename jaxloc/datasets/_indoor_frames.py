@@ -4,12 +4,14 @@ ego-motion with configurable noise (host-side numpy, seeded ``numpy.random.Gener
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
-import trimesh
 from scipy import ndimage
 
 from jaxloc.camera import Camera, stride_grid
-from jaxloc.geometry import ego_motion, rotation_world_cam
+from jaxloc.geometry import ego_motion
+from jaxloc.render import render
+from jaxloc.scene import SceneGraph
 
 
 def render_views(
@@ -17,8 +19,9 @@ def render_views(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Full-resolution object ids, z-depth and colour of every pixel of every view.
 
-    Stand-in renderer (trimesh ray casting, Embree when installed) of the query scene; the camera
-    conventions are the library's (``rotation_world_cam``, pixel centres at integer coordinates).
+    The query scene is rendered with jaxloc's own BVH raycaster (:func:`jaxloc.render`), one
+    jitted view at a time, with the library's camera conventions (``rotation_world_cam``, pixel
+    centres at integer coordinates).
 
     Args:
         meshes: world-frame trimesh meshes with per-vertex colours.
@@ -31,32 +34,19 @@ def render_views(
         object id (T, H, W) int32 (-1 on a miss), z-depth along the optical axis (T, H, W)
         float32 metres (+inf on a miss) and colour (T, H, W, 3) float32 in [0, 1].
     """
-    offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])
-    vertices = np.concatenate([m.vertices for m in meshes])
-    faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets[:-1], strict=True)])
-    colors = np.concatenate([np.asarray(m.visual.vertex_colors)[:, :3] / 255.0 for m in meshes])
-    triangle_object = np.repeat(np.asarray(object_ids, np.int32), [len(m.faces) for m in meshes])
-    intersector = trimesh.Trimesh(vertices, faces, process=False).ray
-
-    rays_cam = np.asarray(camera.directions(stride_grid(camera, 1).uv), np.float64)  # (H*W, 3)
-    rotations = np.asarray(jax.vmap(rotation_world_cam)(poses[:, 3], tilts), np.float64)
-    shape = (len(poses), camera.height * camera.width)
-    object_id = np.full(shape, -1, np.int32)
-    depth = np.full(shape, np.inf, np.float32)
-    color = np.zeros(shape + (3,), np.float32)
-    for view, (pose, rotation) in enumerate(zip(poses, rotations, strict=True)):
-        origin = np.asarray(pose[:3], np.float64)
-        directions = rays_cam @ rotation.T
-        triangle = intersector.intersects_first(
-            np.broadcast_to(origin, directions.shape), directions
-        )
-        hit = np.flatnonzero(triangle >= 0)
-        corner = faces[triangle[hit]]
-        distance, weights = _ray_triangle(origin, directions[hit], vertices[corner])
-        object_id[view, hit] = triangle_object[triangle[hit]]
-        depth[view, hit] = distance * rays_cam[hit, 2]  # unit rays: z-depth = t * cos(angle)
-        color[view, hit] = (weights[:, :, None] * colors[corner]).sum(axis=1)
+    count = len(meshes)
+    scene = SceneGraph.from_meshes(list(meshes), np.arange(count), np.eye(count, dtype=np.float32))
+    grid = stride_grid(camera, 1)
+    object_ids = np.asarray(object_ids, np.int32)
+    views = [
+        _render_view(scene, jnp.asarray(pose, jnp.float32), camera, grid, jnp.asarray(tilt))
+        for pose, tilt in zip(poses, tilts, strict=True)
+    ]
+    index = np.stack([np.asarray(v.object_id) for v in views])
     image = (len(poses), camera.height, camera.width)
+    object_id = np.where(index >= 0, object_ids[np.maximum(index, 0)], -1).astype(np.int32)
+    depth = np.stack([np.asarray(v.depth) for v in views]).astype(np.float32)
+    color = np.stack([np.asarray(v.color) for v in views]).astype(np.float32)
     return (
         object_id.reshape(image),
         depth.reshape(image),
@@ -64,27 +54,7 @@ def render_views(
     )
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross products of (3, R) column vectors."""
-    return np.stack(
-        [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
-    )
-
-
-def _ray_triangle(origin: np.ndarray, directions: np.ndarray, corners: np.ndarray):
-    """Distance along each (unit) ray to the plane of its hit triangle, and the barycentric
-    weights (R, 3) of the hit point (Moller-Trumbore, float64)."""
-    v0 = corners[:, 0].T
-    e1, e2 = corners[:, 1].T - v0, corners[:, 2].T - v0  # (3, R) rows are x, y, z
-    d = directions.T
-    p = _cross(d, e2)
-    inverse = 1.0 / (e1 * p).sum(axis=0)
-    offset = origin[:, None] - v0
-    q = _cross(offset, e1)
-    u = (offset * p).sum(axis=0) * inverse
-    v = (d * q).sum(axis=0) * inverse
-    t = (e2 * q).sum(axis=0) * inverse
-    return t, np.stack([1.0 - u - v, u, v], axis=1)
+_render_view = jax.jit(render)
 
 
 def dominant_objects(object_images: np.ndarray, camera: Camera, rows: int, cols: int) -> np.ndarray:
