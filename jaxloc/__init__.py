@@ -9,9 +9,9 @@ Two published methods as pure, jit/vmap-able functions:
 """
 
 from jaxloc import filter, lsq, metrics, particles, resample, scores, sg2loc, triplet
+from jaxloc._raycast import RayHit, raycast
+from jaxloc._render import Render, render, render_batch
 from jaxloc.camera import Camera, RayGrid, patch_grid, stride_grid
-from jaxloc.raycast import RayHit, raycast
-from jaxloc.render import Render, render, render_batch
 from jaxloc.scene import Capacity, MapFormatError, SceneGraph, load_scene, save_scene
 from jaxloc.sequence import Sequence
 

@@ -22,6 +22,7 @@ import numpy as np
 from jax import Array
 
 from jaxloc._convert import as_float32, as_int32
+from jaxloc._render import render_batch
 from jaxloc.camera import Camera, RayGrid
 from jaxloc.particles import (
     ParticleState,
@@ -31,7 +32,6 @@ from jaxloc.particles import (
     update_weights,
     weighted_mean,
 )
-from jaxloc.render import render_batch
 from jaxloc.resample import KLDConfig, kld_resample
 from jaxloc.scene import SceneGraph
 from jaxloc.scores import ObservationConfig, match_patches, particle_log_likelihood

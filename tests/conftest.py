@@ -18,8 +18,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxloc.raycast import raycast
-from jaxloc.render import render, render_batch
+from jaxloc import raycast, render, render_batch
 from jaxloc.scene import SceneGraph
 
 #: Number of rays of the standard random batch (one compiled shape for most raycast tests).

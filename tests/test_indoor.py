@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxloc import raycast
 from jaxloc.camera import stride_grid
 from jaxloc.datasets import _indoor_frames as frames
 from jaxloc.datasets.indoor import (
@@ -22,7 +23,6 @@ from jaxloc.datasets.indoor import (
     object_embeddings,
 )
 from jaxloc.geometry import ego_motion, rotation_world_cam
-from jaxloc.raycast import raycast
 
 SMALL = EpisodeConfig(sensor=SensorConfig(width=160, height=90))
 SEEDS = (0, 1, 2, 3)

@@ -29,7 +29,7 @@ from conftest import (
 
 from jaxloc.scene import SceneGraph
 
-rc = importlib.import_module("jaxloc.raycast")  # ``jaxloc.raycast`` the attribute is the function
+rc = importlib.import_module("jaxloc._raycast")
 
 MIN_AGREEMENT = 0.999
 T_TOL = 1e-4  # metres

@@ -23,8 +23,8 @@ from conftest import (
     rot_z,
 )
 
+from jaxloc import render, render_batch
 from jaxloc.camera import Camera, stride_grid
-from jaxloc.render import render, render_batch
 from jaxloc.scene import SceneGraph
 
 CAMERA = Camera.from_fov(160, 90, 60.0)

@@ -13,8 +13,8 @@ import pytest
 import trimesh
 from conftest import cast_padded, random_meshes, random_rays
 
+from jaxloc import raycast
 from jaxloc.mesh_io import load_objects_file, load_scene_from_files
-from jaxloc.raycast import raycast
 from jaxloc.scene import Capacity, MapFormatError, SceneGraph, load_scene, save_scene
 
 EMB8 = np.eye(8)

@@ -8,9 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 from scipy import ndimage
 
+from jaxloc._render import render
 from jaxloc.camera import Camera, stride_grid
 from jaxloc.geometry import ego_motion
-from jaxloc.render import render
 from jaxloc.scene import SceneGraph
 
 

@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from jaxloc._raycast import RayHit, raycast
 from jaxloc.camera import Camera, RayGrid
 from jaxloc.geometry import rotation_world_cam
-from jaxloc.raycast import RayHit, raycast
 from jaxloc.scene import SceneGraph
 
 #: Rays of one camera traverse the BVH in packets of this many neighbouring rays (a 4 x 4 tile).
