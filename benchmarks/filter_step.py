@@ -300,7 +300,7 @@ def report(args, data_info: dict, results: list[dict]) -> str:
         + "; ".join(
             f"{r['case']}: " + ", ".join(f"{w:.2f}" for w in r["frame_wall"]) for r in results
         ),
-        "particles active at the first frame (every slot is rendered regardless): "
+        "particles active at the first frame (inactive slots cast no rays): "
         + ", ".join(f"{r['case']} {r['active_at_start']}" for r in results),
         "peak RSS: ru_maxrss of the case's own process (includes the map, the sequence and the "
         "JAX runtime; RSS before compiling: "
