@@ -42,6 +42,7 @@ from jaxloc.datasets._indoor_config import (
     TrajectoryConfig,
 )
 from jaxloc.datasets._indoor_furniture import CLASS_NAMES, FURNITURE, STRUCTURE_CLASSES
+from jaxloc.datasets._indoor_merge import MergedRooms, merge_rooms
 from jaxloc.datasets._indoor_meshes import build_furniture, build_structure
 from jaxloc.datasets._indoor_trajectory import FreeSpace, sample_trajectory
 from jaxloc.scene import SceneGraph
@@ -52,6 +53,7 @@ __all__ = [
     "ChangeConfig",
     "Episode",
     "EpisodeConfig",
+    "MergedRooms",
     "Room",
     "RoomConfig",
     "SceneChanges",
@@ -60,6 +62,7 @@ __all__ = [
     "change_room",
     "make_episode",
     "make_room",
+    "merge_rooms",
     "object_embeddings",
     "scene_graph",
 ]
