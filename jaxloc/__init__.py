@@ -8,7 +8,18 @@ Two published methods as pure, jit/vmap-able functions:
   (:mod:`jaxloc.triplet`).
 """
 
-from jaxloc import filter, learn, lsq, metrics, particles, resample, retrieval, scores, sg2loc, triplet
+from jaxloc import (
+    filter,
+    learn,
+    lsq,
+    metrics,
+    particles,
+    resample,
+    retrieval,
+    scores,
+    sg2loc,
+    triplet,
+)
 from jaxloc._raycast import RayHit, raycast
 from jaxloc._render import Render, render, render_batch
 from jaxloc.camera import Camera, RayGrid, patch_grid, stride_grid
