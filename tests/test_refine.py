@@ -1,0 +1,426 @@
+"""Tests of jaxloc.refine: residuals vs numpy references, gradients vs finite differences,
+degenerate inputs, convergence on noise-free frames, traces, bad input.
+
+The scene is the closed 6 x 4 x 3 m box room of conftest (analytic float64 raycasts in numpy) seen
+by a 160 x 90 camera tilted down towards a corner, so three orthogonal planes (two walls and the
+floor) fix all six degrees of freedom.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jaxlie
+import numpy as np
+import pytest
+from conftest import BODY_CAM, ROOM, box_room, room_hits, rot_x, rot_y, rot_z
+
+from jaxloc import Camera, SceneGraph, Sequence
+from jaxloc.geometry import ego_motion, yaw_pose_to_se3
+from jaxloc.lsq import RobustLoss
+from jaxloc.refine import (
+    STATUS_BAD_INPUT,
+    STATUS_DIVERGED,
+    STATUS_TOO_FEW_RESIDUALS,
+    Observations,
+    RefineConfig,
+    correspondences,
+    depth_residuals,
+    depth_samples,
+    refine,
+    refine_frame,
+    refine_pose,
+    reprojection_residuals,
+)
+
+CAMERA = Camera.from_fov(160, 90, 60.0)
+TILT = np.array([0.35, 0.05])
+POSE = np.array([1.6, 1.2, 1.5, np.arctan2(2.8, 4.4)])  # looks towards the corner (6, 4)
+STRIDE = 6
+#: Pixels whose ray passes this close (metres) to a second wall are skipped in exact comparisons.
+EDGE_GAP = 0.05
+
+
+def numpy_rotation(yaw, tilt):
+    return rot_z(yaw) @ rot_y(tilt[0]) @ rot_x(tilt[1]) @ BODY_CAM
+
+
+def numpy_rays(camera: Camera, uv: np.ndarray) -> np.ndarray:
+    d = np.stack(
+        [(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy, np.ones(len(uv))],
+        -1,
+    )
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def room_depth(R: np.ndarray, origin: np.ndarray, camera: Camera) -> np.ndarray:
+    """Analytic float64 z-depth image (H, W) of the box room."""
+    uu, vv = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
+    uv = np.stack([uu.ravel(), vv.ravel()], -1).astype(np.float64)
+    d_cam = numpy_rays(camera, uv)
+    t, _, _ = room_hits(origin, d_cam @ R.T)
+    return (t * d_cam[:, 2]).reshape(camera.height, camera.width).astype(np.float32)
+
+
+def se3(R: np.ndarray, t: np.ndarray) -> jaxlie.SE3:
+    return jaxlie.SE3.from_rotation_and_translation(
+        jaxlie.SO3.from_matrix(jnp.asarray(R, jnp.float32)), jnp.asarray(t, jnp.float32)
+    )
+
+
+def perturbed(T: jaxlie.SE3, seed: int, metres: float = 0.3, degrees: float = 10.0) -> jaxlie.SE3:
+    rng = np.random.default_rng(seed)
+    axis, direction = rng.normal(size=3), rng.normal(size=3)
+    axis, direction = axis / np.linalg.norm(axis), direction / np.linalg.norm(direction)
+    rotation = jaxlie.SO3.exp(jnp.asarray(np.deg2rad(degrees) * axis, jnp.float32))
+    return jaxlie.SE3.from_rotation_and_translation(
+        T.rotation() @ rotation, T.translation() + jnp.asarray(metres * direction, jnp.float32)
+    )
+
+
+def errors(T: jaxlie.SE3, T_ref: jaxlie.SE3) -> tuple[float, float]:
+    delta = T_ref.inverse() @ T
+    return (
+        float(np.linalg.norm(np.asarray(T.translation() - T_ref.translation()))),
+        float(np.rad2deg(np.linalg.norm(np.asarray(delta.rotation().log())))),
+    )
+
+
+@pytest.fixture(scope="module")
+def room() -> SceneGraph:
+    return SceneGraph.from_meshes(box_room(), np.arange(6), np.eye(6, 8))
+
+
+@pytest.fixture(scope="module")
+def truth():
+    R = numpy_rotation(POSE[3], TILT)
+    return R, POSE[:3], se3(R, POSE[:3])
+
+
+@pytest.fixture(scope="module")
+def depth_image(truth) -> np.ndarray:
+    R, origin, _ = truth
+    return room_depth(R, origin, CAMERA)
+
+
+@pytest.fixture(scope="module")
+def matches(truth):
+    """60 exact 2D-3D correspondences at the true pose (world points on the room's walls)."""
+    R, origin, _ = truth
+    rng = np.random.default_rng(3)
+    uv = np.stack([rng.uniform(0, 159, 60), rng.uniform(0, 89, 60)], -1)
+    d_world = numpy_rays(CAMERA, uv) @ R.T
+    t, _, _ = room_hits(origin, d_world)
+    return uv.astype(np.float32), (origin + t[:, None] * d_world).astype(np.float32)
+
+
+# ----------------------------------------------------------------------------- numpy references
+
+
+def numpy_depth_residuals(R, origin, uv, depth):
+    """Float64 point-to-plane residual against the analytic wall hit by each pixel's ray."""
+    d_cam = numpy_rays(CAMERA, uv)
+    d_world = d_cam @ R.T
+    _, wall, gap = room_hits(origin, d_world)
+    axis = np.array([2, 2, 0, 0, 1, 1])[wall]
+    offset = np.array([0.0, ROOM[2], 0.0, ROOM[0], 0.0, ROOM[1]])[wall]
+    p_cam = depth[:, None] * np.stack(
+        [(uv[:, 0] - CAMERA.cx) / CAMERA.fx, (uv[:, 1] - CAMERA.cy) / CAMERA.fy, np.ones(len(uv))],
+        -1,
+    )
+    p_world = p_cam @ R.T + origin
+    residual = p_world[np.arange(len(uv)), axis] - offset  # the unit normal is +-e_axis
+    incidence = np.abs(d_world[np.arange(len(uv)), axis])
+    return residual, (depth > 0) & (incidence >= 0.1), gap
+
+
+def test_depth_residuals_match_numpy(room, truth, depth_image):
+    R, origin, _ = truth
+    uv, depth = depth_samples(CAMERA, depth_image, STRIDE)
+    depth = depth * (1.0 + 0.05 * np.sin(np.arange(depth.size)))  # a non-zero residual
+    depth[::7] = 0.0  # invalid pixels
+    R_off = R @ rot_z(0.02)
+    origin_off = origin + np.array([0.05, -0.03, 0.02])
+    residual, valid = jax.jit(depth_residuals)(
+        se3(R_off, origin_off), room, CAMERA, jnp.asarray(uv), jnp.asarray(depth)
+    )
+    ref, ref_valid, gap = numpy_depth_residuals(R_off, origin_off, uv, depth)
+    clear = gap > EDGE_GAP
+    assert clear.sum() > 100
+    np.testing.assert_array_equal(np.asarray(valid)[clear], ref_valid[clear])
+    np.testing.assert_allclose(
+        np.abs(np.asarray(residual))[clear], np.abs(np.where(ref_valid, ref, 0.0))[clear], atol=2e-5
+    )
+    assert np.all(np.asarray(residual)[~np.asarray(valid)] == 0.0)
+
+
+def numpy_reprojection(R, origin, uv, points):
+    p_cam = (points - origin) @ R
+    front = p_cam[:, 2] > 0.05
+    z = np.where(front, p_cam[:, 2], 1.0)
+    projected = np.stack(
+        [CAMERA.fx * p_cam[:, 0] / z + CAMERA.cx, CAMERA.fy * p_cam[:, 1] / z + CAMERA.cy], -1
+    )
+    return np.where(front[:, None], projected - uv, 0.0), front
+
+
+def test_reprojection_residuals_match_numpy(truth, matches):
+    R, origin, _ = truth
+    uv, points = matches
+    points = points.copy()
+    points[0] = origin - 2.0 * R[:, 2]  # behind the camera
+    points[1] = origin + 0.01 * R[:, 2]  # in front but closer than min_depth
+    valid = np.ones(len(uv), bool)
+    valid[2] = False
+    R_off, origin_off = R @ rot_x(0.03), origin + np.array([0.1, 0.0, -0.05])
+    residual, ok = jax.jit(reprojection_residuals)(
+        se3(R_off, origin_off), CAMERA, jnp.asarray(uv), jnp.asarray(points), jnp.asarray(valid)
+    )
+    ref, front = numpy_reprojection(R_off, origin_off, uv.astype(np.float64), points)
+    ref_ok = front & valid
+    np.testing.assert_array_equal(np.asarray(ok), ref_ok)
+    assert not ref_ok[0] and not ref_ok[1]
+    np.testing.assert_allclose(np.asarray(residual), np.where(ref_ok[:, None], ref, 0.0), atol=2e-3)
+
+
+def test_residuals_jit_equals_eager(room, truth, depth_image, matches):
+    _, _, T = truth
+    uv, depth = depth_samples(CAMERA, depth_image, STRIDE)
+    args = (T, room, CAMERA, jnp.asarray(uv), jnp.asarray(depth * 1.01))
+    for a, b in zip(jax.jit(depth_residuals)(*args), depth_residuals(*args), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-6)
+    m_uv, points = matches
+    args = (T, CAMERA, jnp.asarray(m_uv + 1.0), jnp.asarray(points), jnp.ones(len(m_uv), bool))
+    for a, b in zip(
+        jax.jit(reprojection_residuals)(*args), reprojection_residuals(*args), strict=True
+    ):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-4)
+
+
+# ----------------------------------------------------------------------------- gradients
+
+
+def tangent_jacobian(fn, T: jaxlie.SE3):
+    """Autodiff and central finite-difference Jacobians of ``fn(T @ exp(delta))`` at delta = 0."""
+    at = lambda delta: fn(T @ jaxlie.SE3.exp(delta))  # noqa: E731
+    auto = np.asarray(jax.jacfwd(at)(jnp.zeros(6)))
+    eps = 1e-3
+    columns = []
+    for k in range(6):
+        step = np.zeros(6, np.float32)
+        step[k] = eps
+        plus, minus = np.asarray(at(jnp.asarray(step))), np.asarray(at(jnp.asarray(-step)))
+        columns.append((plus.astype(np.float64) - minus) / (2 * eps))
+    return auto, np.stack(columns, axis=-1)
+
+
+def test_depth_residual_gradient_matches_finite_differences(room, truth, depth_image):
+    R, origin, _ = truth
+    uv, depth = depth_samples(CAMERA, depth_image, STRIDE)
+    T = se3(R @ rot_y(0.01), origin + np.array([0.04, 0.02, -0.03]))
+    _, ref_valid, gap = numpy_depth_residuals(
+        R @ rot_y(0.01), origin + np.array([0.04, 0.02, -0.03]), uv, depth
+    )
+    fn = lambda pose: depth_residuals(pose, room, CAMERA, jnp.asarray(uv), jnp.asarray(depth))[0]  # noqa: E731
+    auto, numeric = tangent_jacobian(jax.jit(fn), T)
+    keep = (gap > EDGE_GAP) & ref_valid
+    assert np.all(np.isfinite(auto))
+    np.testing.assert_allclose(auto[keep], numeric[keep], atol=3e-3, rtol=1e-2)
+    assert np.abs(auto[keep]).max() > 0.5  # not vacuous
+
+
+def test_reprojection_gradient_matches_finite_differences(truth, matches):
+    _, _, T = truth
+    uv, points = matches
+    fn = lambda pose: reprojection_residuals(  # noqa: E731
+        pose, CAMERA, jnp.asarray(uv), jnp.asarray(points), jnp.ones(len(uv), bool)
+    )[0]
+    auto, numeric = tangent_jacobian(jax.jit(fn), T)
+    np.testing.assert_allclose(auto, numeric, atol=0.5, rtol=2e-2)
+    assert np.abs(auto).max() > 10.0
+
+
+def test_gradients_finite_at_degenerate_configurations(room, truth, matches):
+    _, _, T = truth
+    # Grazing: a camera 1 mm above the floor looking level along it; depth all invalid or all
+    # valid; correspondences on the camera centre, behind it and NaN rows.
+    grazing = yaw_pose_to_se3(jnp.array([1.0, 2.0, 0.001, 0.0]))
+    uv, depth = depth_samples(CAMERA, np.full((90, 160), 2.0, np.float32), STRIDE)
+    for pose, d in ((grazing, depth), (T, depth), (T, np.zeros_like(depth))):
+        grad = jax.jacfwd(
+            lambda delta, pose=pose, d=d: depth_residuals(
+                pose @ jaxlie.SE3.exp(delta), room, CAMERA, jnp.asarray(uv), jnp.asarray(d)
+            )[0]
+        )(jnp.zeros(6))
+        assert np.all(np.isfinite(np.asarray(grad)))
+    m_uv, points = matches
+    points = points[:4].copy()
+    points[0] = np.asarray(T.translation())
+    points[1] = np.asarray(T.translation()) - 3.0 * np.asarray(T.rotation().as_matrix())[:, 2]
+    points[2] = np.nan
+    grad = jax.jacfwd(
+        lambda delta: reprojection_residuals(
+            T @ jaxlie.SE3.exp(delta),
+            CAMERA,
+            jnp.asarray(m_uv[:4]),
+            jnp.asarray(points),
+            jnp.ones(4, bool),
+        )[0]
+    )(jnp.zeros(6))
+    assert np.all(np.isfinite(np.asarray(grad)))
+    assert np.all(np.asarray(grad)[:3] == 0.0) and np.any(np.asarray(grad)[3] != 0.0)
+
+
+# ----------------------------------------------------------------------------- the solve
+
+
+def observations(uv, depth, m_uv=None, points=None) -> Observations:
+    m_uv = np.zeros((0, 2), np.float32) if m_uv is None else m_uv
+    points = np.zeros((0, 3), np.float32) if points is None else points
+    return Observations(
+        depth_uv=jnp.asarray(uv),
+        depth=jnp.asarray(depth)[None],
+        match_uv=jnp.asarray(m_uv)[None],
+        match_points=jnp.asarray(points)[None],
+        match_valid=jnp.ones((1, len(m_uv)), bool),
+    )
+
+
+def test_depth_refinement_converges_without_retracing(room, truth, depth_image):
+    """(a) from two 0.3 m / 10 deg perturbations; one trace for both frames."""
+    _, _, T_true = truth
+    traces = []
+
+    def counted(*args):
+        traces.append(1)
+        return refine_pose(*args)
+
+    solve = eqx.filter_jit(counted)
+    config = RefineConfig(residuals="depth", depth_stride=STRIDE)
+    uv, depth = depth_samples(CAMERA, depth_image, STRIDE)
+    identity = jaxlie.SE3.identity((1,))
+    results = []
+    for seed in (0, 1):
+        start = perturbed(T_true, seed)
+        result = solve(room, CAMERA, start, identity, observations(uv, depth), config)
+        pos, rot = errors(result.pose, T_true)
+        assert bool(result.ok) and int(result.status) == 0, (pos, rot)
+        assert pos < 0.02 and rot < 0.5, (seed, pos, rot)
+        results.append(result)
+    assert len(traces) == 1
+    again = solve(room, CAMERA, perturbed(T_true, 1), identity, observations(uv, depth), config)
+    np.testing.assert_array_equal(  # deterministic
+        np.asarray(again.pose.parameters()), np.asarray(results[1].pose.parameters())
+    )
+
+
+@pytest.mark.parametrize("residuals", ["reprojection", "both"])
+def test_refinement_converges_with_correspondences(room, truth, depth_image, matches, residuals):
+    """(b) and (c) from a 0.3 m / 10 deg perturbation, exact correspondences."""
+    _, _, T_true = truth
+    uv, points = matches
+    config = RefineConfig(residuals=residuals, depth_stride=STRIDE, loss=RobustLoss("huber", 3.0))
+    result = refine_frame(
+        room,
+        CAMERA,
+        perturbed(T_true, 2),
+        config,
+        depth=depth_image,
+        match_uv=uv,
+        match_points=points,
+    )
+    pos, rot = errors(result.pose, T_true)
+    assert bool(result.ok) and int(result.num_matches) == len(uv)
+    assert pos < 0.02 and rot < 0.5, (residuals, pos, rot)
+
+
+def test_sequence_refinement_through_ego_motion(room):
+    """Three frames refined jointly from the 4-DoF start: every frame lands on its truth."""
+    poses = np.array([[1.2, 1.0, 1.5, 0.45], [1.4, 1.1, 1.5, 0.55], [1.6, 1.2, 1.5, 0.6]])
+    tilts = np.array([[0.3, 0.0], [0.35, 0.05], [0.35, 0.05]])
+    depth = np.stack(
+        [
+            room_depth(numpy_rotation(p[3], s), p[:3], CAMERA)
+            for p, s in zip(poses, tilts, strict=True)
+        ]
+    )
+    motion = np.stack(
+        [
+            np.asarray(ego_motion(jnp.asarray(a), jnp.asarray(b)))
+            for a, b in zip(poses[:-1], poses[1:], strict=True)
+        ]
+    )
+    sequence = Sequence(CAMERA, np.ones((3, 9, 16, 8)), motion, depth=depth, tilt=tilts)
+    start = poses[-1] + np.array([0.2, -0.15, 0.1, np.deg2rad(8.0)])
+    result = refine(room, sequence, start, RefineConfig(mode="sequence", depth_stride=8))
+    assert bool(result.ok)
+    for t in range(3):
+        T_true = se3(numpy_rotation(poses[t, 3], tilts[t]), poses[t, :3])
+        pos, rot = errors(jaxlie.SE3(result.frame_poses.parameters()[t]), T_true)
+        assert pos < 0.02 and rot < 0.5, (t, pos, rot)
+    np.testing.assert_allclose(np.asarray(result.yaw_pose), poses[-1], atol=0.02)
+
+
+def test_failures_are_values(room, truth, depth_image):
+    _, _, T_true = truth
+    config = RefineConfig(residuals="depth", depth_stride=STRIDE)
+    uv, depth = depth_samples(CAMERA, depth_image, STRIDE)
+    identity = jaxlie.SE3.identity((1,))
+    solve = eqx.filter_jit(refine_pose)
+    start = perturbed(T_true, 0)
+    cases = {
+        STATUS_TOO_FEW_RESIDUALS: (
+            room,
+            CAMERA,
+            start,
+            identity,
+            observations(uv, 0 * depth),
+            config,
+        ),
+        STATUS_BAD_INPUT: (
+            room,
+            CAMERA,
+            jaxlie.SE3(jnp.full(7, jnp.nan)),
+            identity,
+            observations(uv, depth),
+            config,
+        ),
+    }
+    for status, args in cases.items():
+        result = solve(*args)
+        assert not bool(result.ok) and int(result.status) == status
+        assert np.all(np.isfinite(np.asarray(result.pose.parameters())))
+    diverging = RefineConfig(residuals="depth", depth_stride=STRIDE, max_translation=0.01)
+    result = solve(room, CAMERA, start, identity, observations(uv, depth), diverging)
+    assert not bool(result.ok) and int(result.status) == STATUS_DIVERGED
+    np.testing.assert_array_equal(
+        np.asarray(result.pose.parameters()), np.asarray(start.parameters())
+    )
+    assert np.isinf(float(result.cost))
+
+
+def test_bad_input_raises_clear_errors(room, truth, depth_image, matches):
+    _, _, T = truth
+    uv, points = matches
+    with pytest.raises(ValueError, match="points_world"):
+        correspondences(uv, points[:, :2])
+    with pytest.raises(ValueError, match="must match uv"):
+        correspondences(uv, points[:-1])
+    bad = uv.copy()
+    bad[3, 0] = np.nan
+    with pytest.raises(ValueError, match="uv contains 1 NaN"):
+        correspondences(bad, points)
+    with pytest.raises(ValueError, match="valid must be a bool"):
+        correspondences(uv, points, np.ones(3, bool))
+    with pytest.raises(ValueError, match="depth must have shape"):
+        refine_frame(room, CAMERA, T, RefineConfig(), depth=depth_image[:, :10])
+    with pytest.raises(ValueError, match="needs match_uv"):
+        refine_frame(room, CAMERA, T, RefineConfig(residuals="reprojection"))
+    with pytest.raises(ValueError, match="residuals must be"):
+        RefineConfig(residuals="lidar")
+    with pytest.raises(ValueError, match="yaw_pose"):
+        sequence = Sequence(
+            CAMERA, np.ones((1, 9, 16, 8)), np.zeros((0, 4)), depth=depth_image[None]
+        )
+        refine(room, sequence, np.array([1.0, 2.0, np.nan, 0.0]))
