@@ -15,14 +15,22 @@ adjudicated with a float64 brute force over all triangles.
 
     python benchmarks/raycast.py                 # the issue's 2500 poses
     python benchmarks/raycast.py --poses 100     # a quick run
+    python benchmarks/raycast.py --baseline OLD_RAYCAST.py   # + an older traversal, same rays
+
+``--baseline`` loads another version of ``jaxloc/_raycast.py`` from a file (e.g. the previous
+commit's, ``git show HEAD~1:jaxloc/_raycast.py > /tmp/old_raycast.py``) and times its ``raycast``
+on the rays ``render_batch`` casts (tile order, packets of :data:`jaxloc._render.PACKET_SIZE`), so
+the two traversals are compared side by side in one run.
 """
 
 from __future__ import annotations
 
 import argparse
 import functools
+import importlib.util
 import os
 import platform
+import sys
 import time
 
 import jax
@@ -30,6 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxloc
+from jaxloc import _raycast
+from jaxloc._render import PACKET_SIZE, _tile_order
 from jaxloc.datasets.indoor import RoomConfig, make_room, scene_graph
 from jaxloc.geometry import rotation_world_cam
 
@@ -67,6 +77,32 @@ def world_rays(poses: np.ndarray, camera: jaxloc.Camera, grid: jaxloc.RayGrid):
     d = np.einsum("nij,rj->nri", rot, d_cam).reshape(-1, 3)
     o = np.repeat(poses[:, :3], d_cam.shape[0], axis=0)
     return o.astype(np.float32), d.astype(np.float32)
+
+
+def render_order_rays(poses, camera: jaxloc.Camera, grid: jaxloc.RayGrid, packet: int):
+    """The (N * R', 3) origins and directions ``render_batch`` casts: tile order, padded to packets
+    with NaN origins (R' = R rounded up to a multiple of ``packet``)."""
+    order = _tile_order(grid.shape)
+    num = order.shape[0]
+    padded = -(-num // packet) * packet
+    o, d = world_rays(poses, camera, grid)
+    d = np.pad(
+        d.reshape(len(poses), num, 3)[:, order],
+        ((0, 0), (0, padded - num), (0, 0)),
+        constant_values=1.0,
+    )
+    o = np.broadcast_to(poses[:, None, :3], d.shape).copy()
+    o[:, num:] = np.nan
+    return o.reshape(-1, 3), d.reshape(-1, 3)
+
+
+def load_module(path: str):
+    """A raycast module loaded from a file (it imports ``jaxloc`` like the package's own)."""
+    spec = importlib.util.spec_from_file_location("baseline_raycast", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # equinox's dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
 
 
 def timed(fn, repeats: int):
@@ -121,6 +157,26 @@ def run_grid(name, scene, mesh_intersector, tri_object, poses, camera, grid, arg
     row["render_wall_s"], row["render_cpu_s"] = wall, cpu
     ours = np.asarray(out.object_id).reshape(-1)
 
+    # The same rays through the render's raycast and through a baseline traversal (--baseline).
+    if args.baseline:
+        baseline = load_module(args.baseline)
+        for key, module, packet in (
+            ("new", _raycast, PACKET_SIZE),
+            ("base", baseline, args.baseline_packet),
+        ):
+            o_tiles, d_tiles = render_order_rays(poses, camera, grid, packet)
+            cast = jax.jit(functools.partial(module.raycast, packet_size=packet))
+            w0 = time.perf_counter()
+            compiled_cast = cast.lower(scene, o_tiles, d_tiles).compile()
+            row[f"{key}_compile_s"] = time.perf_counter() - w0
+            wall, cpu, hit = timed(
+                lambda c=compiled_cast, o=o_tiles, d=d_tiles: jax.block_until_ready(c(scene, o, d)),
+                args.repeats,
+            )
+            row[f"{key}_wall_s"], row[f"{key}_cpu_s"] = wall, cpu
+            row[f"{key}_object"] = np.asarray(hit.object_id)[np.isfinite(o_tiles[:, 0])]
+        row["base_agree"] = float(np.mean(row.pop("new_object") == row.pop("base_object")))
+
     # jaxloc.raycast on the flat rays (nearest hit only), packets of 1 (unrelated-ray traversal).
     origins, directions = world_rays(poses, camera, grid)
     if args.raycast:
@@ -174,6 +230,12 @@ def main(argv=None):
     parser.add_argument("--packet", type=int, default=1, help="packet_size of the raycast row")
     parser.add_argument("--no-embree", dest="embree", action="store_false")
     parser.add_argument(
+        "--baseline", default=None, help="file of an older jaxloc/_raycast.py to time beside"
+    )
+    parser.add_argument(
+        "--baseline-packet", type=int, default=16, help="its packet size (16 before 4-wide)"
+    )
+    parser.add_argument(
         "--adjudicate", type=int, default=100, help="disagreements checked by brute force"
     )
     args = parser.parse_args(argv)
@@ -215,7 +277,7 @@ def main(argv=None):
     print(
         f"- jax {jax.__version__} on {jax.devices()[0].platform} ({jax.devices()[0].device_kind}), "
         f"{os.cpu_count()} CPUs visible, {platform.processor() or platform.machine()}; "
-        f"load average {os.getloadavg()[0]:.1f}"
+        f"load average {os.getloadavg()[0]:.1f} at the start"
     )
     rows = [
         run_grid(name, scene, intersector, tri_object, poses, camera, grids[name], args)
@@ -230,6 +292,9 @@ def main(argv=None):
     for r in rows:
         label = f"{r['grid']}: {r['poses']} x {r['rays'] // r['poses']} = {r['rays']}"
         engines = [("jaxloc render_batch", "render")]
+        if "new_wall_s" in r:
+            engines.append((f"jaxloc raycast, render's rays (packet {PACKET_SIZE})", "new"))
+            engines.append((f"baseline raycast, same rays (packet {args.baseline_packet})", "base"))
         if "cast_wall_s" in r:
             engines.append((f"jaxloc raycast (packet {args.packet})", "cast"))
         if "embree_wall_s" in r:
@@ -247,7 +312,7 @@ def main(argv=None):
                 f"| {label} | {title} | {compiled} | {wall:.3f} | {cpu:.3f} | {rates} "
                 f"| {ratio_w} | {ratio_c} |"
             )
-    print()
+    print(f"\n- load average {os.getloadavg()[0]:.1f} at the end")
     for r in rows:
         if "agreement" in r:
             line = (
@@ -261,6 +326,11 @@ def main(argv=None):
                     f"{r['brute_sides_with_embree']}"
                 )
             print(line)
+        if "base_agree" in r:
+            print(
+                f"- {r['grid']}: baseline vs jaxloc raycast same object on "
+                f"{100 * r['base_agree']:.3f} % of rays"
+            )
         if "cast_vs_render_agree" in r:
             print(
                 f"- {r['grid']}: raycast vs render_batch same object on "

@@ -4,13 +4,19 @@ Rays are grouped into packets of P consecutive rays that walk the tree together,
 are traced by one ``lax.while_loop`` over B *lanes* (persistent lanes): each lane holds one packet,
 and a lane whose packet is finished writes its result and takes the next packet from a queue in the
 same loop, so the loop never waits for the slowest packet of a fixed chunk. One iteration advances
-every lane by one node:
+every lane by one step:
 
-* a lane at an internal node tests the boxes of the node's two children, which are stored with the
-  node (one gather), for its P rays; a child is entered when some ray hits its box closer than that
-  ray's best hit so far. The lane moves to the entered child with the smaller entry distance (the
-  nearest entry over the packet's rays) and pushes the other one, if also entered, on its fixed-size
-  stack (``scene.stack_size`` >= tree depth, so it can never overflow); with none entered it pops.
+* the tree is walked 4-wide: the binary BVH's internal node n stands for its (up to) four
+  grandchildren (a child that is a leaf stands for itself), whose boxes are gathered once per
+  scene into one row per node (:func:`_wide_nodes`), so one iteration descends two binary levels.
+  A lane at an internal node tests the four boxes for its P rays (one gather); a child is entered
+  when some ray hits its box closer than that ray's best hit so far. The entered children are
+  sorted by entry distance (the nearest entry over the packet's rays); the lane moves to the
+  nearest and pushes the others, farthest first, on its fixed-size stack
+  (3 * (``scene.stack_size`` // 2 + 1) entries >= 3 per wide level of a tree of depth <
+  ``scene.stack_size``, so it can never overflow); with none entered it pops. Halving the steps
+  halved the traversal time against the binary walk on the benchmark room
+  (benchmarks/results/raycast_cpu.md): the loop's cost is per step, far more than per box.
 * lanes at a leaf are compacted (up to B / 4 per iteration; the others wait one iteration) and only
   they test their P rays against the leaf's K triangles (Moller-Trumbore, coordinates written out),
   so the triangle test is not paid by the far more numerous internal-node steps. Each ray keeps its
@@ -46,7 +52,8 @@ DET_EPS = 1e-12
 #: this fraction of their size, which is far below the meshes' accuracy.
 EDGE_EPS = 1e-5
 #: Rays in flight in the traversal loop (lanes x packet size): enough lanes to amortise the loop's
-#: per-iteration overhead, few enough that the loop state stays in cache.
+#: per-iteration overhead (1024 lanes of the render's 8-ray packets beat 2048 on the benchmark
+#: room), few enough that the loop state stays in cache.
 DEFAULT_CHUNK = 8192
 #: At most 1 / LEAF_LANE_FRACTION of the lanes test triangles in one iteration.
 LEAF_LANE_FRACTION = 4
@@ -110,6 +117,41 @@ def _child_entry(boxes, o, inv_d):
     return jnp.maximum(near, 0.0), far
 
 
+#: Children per node of the 4-wide tree the traversal walks (two binary levels collapsed).
+WIDTH = 4
+
+
+def _wide_nodes(scene: SceneGraph) -> tuple[Array, Array]:
+    """The 4-wide view of the binary BVH: each internal node's grandchildren.
+
+    Returns ``refs`` (N, 4) int32, the references (see :mod:`jaxloc.bvh`) of the node's up to four
+    grandchildren (a child that is a leaf stands for itself; -1 marks an empty slot), and ``boxes``
+    (N, 24) float32, their AABBs laid out ``[lo_x(4), lo_y(4), lo_z(4), hi_x(4), hi_y(4), hi_z(4)]``
+    so that one gather brings a node's four child boxes as structure of arrays.
+    """
+    num_nodes = scene.node_children.shape[0]
+    children = scene.node_children
+    inner = children >= 0  # (N, 2)
+    grand = children[jnp.maximum(children, 0)]  # (N, 2, 2)
+    first = jnp.where(inner, grand[..., 0], children)
+    second = jnp.where(inner, grand[..., 1], -1)
+    refs = jnp.stack([first, second], -1).reshape(num_nodes, WIDTH)
+    rows = jnp.where(refs <= -2, num_nodes - refs - 2, jnp.maximum(refs, 0))
+    boxes = scene.node_bounds[rows]  # (N, 4, 6)
+    boxes = jnp.where((refs == -1)[..., None], jnp.nan, boxes)  # NaN boxes are never entered
+    return refs, boxes.transpose(0, 2, 1).reshape(num_nodes, 6 * WIDTH)
+
+
+def _sort_children(keys: list[Array], refs: list[Array]) -> tuple[list[Array], list[Array]]:
+    """Sort each lane's four (entry distance, reference) pairs by distance: a 5-exchange network."""
+    keys, refs = list(keys), list(refs)
+    for a, b in ((0, 1), (2, 3), (0, 2), (1, 3), (1, 2)):
+        swap = keys[b] < keys[a]
+        keys[a], keys[b] = jnp.where(swap, keys[b], keys[a]), jnp.where(swap, keys[a], keys[b])
+        refs[a], refs[b] = jnp.where(swap, refs[b], refs[a]), jnp.where(swap, refs[a], refs[b])
+    return keys, refs
+
+
 def _trace_packets(scene: SceneGraph, origins: Array, directions: Array, lanes: int) -> Array:
     """Leaf holding the nearest hit of each ray, -1 on a miss: (Q, P) for Q packets of P rays.
 
@@ -117,13 +159,11 @@ def _trace_packets(scene: SceneGraph, origins: Array, directions: Array, lanes: 
     ``lanes`` packets are in flight at once (see the module docstring for the algorithm).
     """
     num_packets, packet = origins.shape[:2]
-    num_nodes = scene.node_children.shape[0]
-    stack_size = scene.stack_size
+    # Each 4-wide step pushes at most 3 references and descends two binary levels.
+    stack_size = (WIDTH - 1) * (scene.stack_size // 2 + 1)
     lanes = max(1, min(lanes, num_packets))
     leaf_lanes = max(1, lanes // LEAF_LANE_FRACTION)
-    children = scene.node_children
-    child_rows = jnp.where(children <= -2, num_nodes - children - 2, jnp.maximum(children, 0))
-    child_boxes = scene.node_bounds[child_rows].reshape(num_nodes, 12)  # both children per row
+    wide_refs, wide_boxes = _wide_nodes(scene)
 
     safe_d = jnp.where(
         jnp.abs(directions) < 1e-20, jnp.where(directions < 0, -1e-20, 1e-20), directions
@@ -134,20 +174,23 @@ def _trace_packets(scene: SceneGraph, origins: Array, directions: Array, lanes: 
     rays_all = jnp.concatenate([origins, directions, 1.0 / safe_d], -1).transpose(0, 2, 1)
     packet_ok = jnp.any(ray_ok, 1)
     lane_ids = jnp.arange(lanes)
-    slots = jnp.arange(stack_size)
 
     def step(cur, sp, stack, best_t, best_leaf, rays, ok):
         is_leaf, is_node = cur <= -2, cur >= 0
-        # Internal nodes: slab test of both children for all P rays, one reduction per child.
+        # Internal nodes: slab test of the four grandchildren for all P rays.
         node = jnp.where(is_node, cur, 0)
-        boxes = child_boxes[node].reshape(lanes, 2, 6)
+        boxes = wide_boxes[node].reshape(lanes, 6, WIDTH, 1)
         o = [rays[:, None, a] for a in range(3)]
         inv_d = [rays[:, None, 6 + a] for a in range(3)]
-        near, far = _child_entry([boxes[:, :, a, None] for a in range(6)], o, inv_d)
+        near, far = _child_entry([boxes[:, a] for a in range(6)], o, inv_d)
         enter = ok[:, None] & (near <= far) & (near < best_t[:, None])
-        key = jnp.min(jnp.where(enter, near, jnp.inf), 2)  # (B, 2) nearest entry; inf: not entered
-        hit0 = (key[:, 0] < jnp.inf) & is_node
-        hit1 = (key[:, 1] < jnp.inf) & is_node
+        key = jnp.min(jnp.where(enter, near, jnp.inf), 2)  # (B, 4) nearest entry; inf: not entered
+        key = jnp.where(is_node[:, None], key, jnp.inf)
+        refs = wide_refs[node]
+        keys, refs = _sort_children(
+            [key[:, c] for c in range(WIDTH)], [refs[:, c] for c in range(WIDTH)]
+        )
+        entered = [k < jnp.inf for k in keys]
         # Leaves: compact up to leaf_lanes lanes, test their rays against the leaf's triangles.
         rank = jnp.cumsum(is_leaf) - 1
         chosen = is_leaf & (rank < leaf_lanes)
@@ -171,16 +214,21 @@ def _trace_packets(scene: SceneGraph, origins: Array, directions: Array, lanes: 
         better = t_lane < best_t
         best_t = jnp.where(better, t_lane, best_t)
         best_leaf = jnp.where(better, (-cur - 2)[:, None], best_leaf)
-        # Next reference: nearer entered child, else the top of the stack.
-        first0 = key[:, 0] <= key[:, 1]
-        near_ref = jnp.where(hit0 & (~hit1 | first0), children[node, 0], children[node, 1])
-        far_ref = jnp.where(first0, children[node, 1], children[node, 0])
-        push, descend, wait = hit0 & hit1, hit0 | hit1, is_leaf & ~chosen
-        top = jnp.take_along_axis(stack, jnp.maximum(sp - 1, 0)[:, None], 1)[:, 0]
+        # Next reference: the nearest entered child; the other entered ones go on the stack,
+        # farthest first, so the nearest of them is popped first.
+        pushes = entered[1] * 1 + entered[2] * 1 + entered[3] * 1
+        for j in range(WIDTH - 1):
+            # slot sp + j gets the (pushes - j)-th nearest of the pushed children
+            value = jnp.where(
+                pushes - j == 3, refs[3], jnp.where(pushes - j == 2, refs[2], refs[1])
+            )
+            where = jnp.where(j < pushes, sp + j, stack_size)
+            stack = stack.at[lane_ids, where].set(value, mode="drop")
+        wait = is_leaf & ~chosen
+        top = stack[lane_ids, jnp.maximum(sp - 1, 0)]
         popped = jnp.where(sp > 0, top, -1)
-        nxt = jnp.where(descend, near_ref, jnp.where(wait, cur, popped))
-        stack = jnp.where(push[:, None] & (slots == sp[:, None]), far_ref[:, None], stack)
-        sp = jnp.where(descend, sp + push, jnp.where(wait, sp, jnp.maximum(sp - 1, 0)))
+        nxt = jnp.where(entered[0], refs[0], jnp.where(wait, cur, popped))
+        sp = jnp.where(entered[0], sp + pushes, jnp.where(wait, sp, jnp.maximum(sp - 1, 0)))
         return nxt, sp, stack, best_t, best_leaf
 
     def refill(state):
@@ -287,8 +335,8 @@ def raycast(
         origins: (..., 3) ray origins, world frame, metres.
         directions: (..., 3) ray directions, world frame, any non-zero length (normalised here).
         packet_size: consecutive rays that traverse the tree together (static). Exact for any
-            value; packets of 16 pay off when consecutive rays are coherent, e.g. a 4 x 4 tile of
-            one camera's rays, and 1 suits unrelated rays.
+            value; packets of 8 to 16 pay off when consecutive rays are coherent, e.g. a 2 x 4
+            or 4 x 4 tile of one camera's rays, and 1 suits unrelated rays.
         chunk_size: rays in flight in the traversal loop (static): ``chunk_size // packet_size``
             lanes. Both are speed knobs only.
 

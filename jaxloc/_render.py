@@ -18,8 +18,10 @@ from jaxloc.camera import Camera, RayGrid
 from jaxloc.geometry import rotation_world_cam
 from jaxloc.scene import SceneGraph
 
-#: Rays of one camera traverse the BVH in packets of this many neighbouring rays (a 4 x 4 tile).
-PACKET_SIZE = 16
+#: Rays of one camera traverse the BVH in packets of this many neighbouring rays (half a 4 x 4
+#: tile: 2 rows x 4 columns). 8 beat 4 and 16 on the benchmark room for both the patch and the
+#: stride-20 grid (benchmarks/results/raycast_cpu.md).
+PACKET_SIZE = 8
 
 
 class Render(eqx.Module):

@@ -23,11 +23,13 @@ from conftest import (
     edge_margin,
     hits_triangle,
     mt_float64,
+    random_scene,
     scene_mesh,
     trimesh_first,
 )
 
-from jaxloc.scene import SceneGraph
+from jaxloc.bvh import build_bvh
+from jaxloc.scene import MEDIAN_DEPTH, SceneGraph
 
 rc = importlib.import_module("jaxloc._raycast")
 
@@ -214,6 +216,43 @@ def test_exact_nearest_hit_after_many_leaves(scene):
     tris = np.asarray(combs.triangles)[: combs.num_triangles]
     t_ref, tri_ref, _ = brute_force(tris, origins, dirs)
     np.testing.assert_array_equal(hit.triangle_id, tri_ref)
+
+
+def test_wide_nodes_are_grandchildren_with_their_boxes(scene):
+    """The 4-wide view of the BVH against a numpy reference built from the binary arrays."""
+    refs, boxes = (np.asarray(a) for a in rc._wide_nodes(scene))
+    children = np.asarray(scene.node_children)
+    bounds = np.asarray(scene.node_bounds)
+    num_nodes = children.shape[0]
+
+    def row(ref):
+        return num_nodes + (-ref - 2) if ref <= -2 else ref
+
+    for node in range(num_nodes):
+        if children[node, 0] == -1:  # capacity padding: never reached
+            continue
+        want = []
+        for child in children[node]:
+            want += list(children[child]) if child >= 0 else [child, -1]
+        np.testing.assert_array_equal(refs[node], want)
+        got = boxes[node].reshape(6, 4).T  # (4 children, lo xyz + hi xyz)
+        for slot, ref in enumerate(want):
+            if ref == -1:
+                assert np.all(np.isnan(got[slot]))
+            else:
+                np.testing.assert_array_equal(got[slot], bounds[row(ref)])
+
+
+def test_smallest_allowed_stack_gives_identical_hits(scene, rays, hits):
+    """The 4-wide traversal's stack is sized from ``stack_size``; the smallest stack the scene
+    accepts (tree depth + 1) must not drop any entry: the same hits as the default."""
+    tris = np.asarray(scene.triangles)[: scene.num_triangles]
+    depth = build_bvh(tris, leaf_size=scene.capacity.leaf_size, median_depth=MEDIAN_DEPTH).depth
+    tight = random_scene(0, capacity=scene.capacity._replace(stack_size=depth + 1))
+    assert tight.stack_size == depth + 1 < scene.stack_size
+    other = jax.tree.map(np.asarray, cast(tight, *rays))
+    np.testing.assert_array_equal(other.triangle_id, hits.triangle_id)
+    np.testing.assert_array_equal(other.t, hits.t)
 
 
 # ----------------------------------------------------------------------------- API behaviour
