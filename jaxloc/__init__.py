@@ -19,6 +19,7 @@ from jaxloc import (
     retrieval,
     scores,
     sg2loc,
+    sharding,
     triplet,
 )
 from jaxloc._raycast import RayHit, raycast
@@ -53,5 +54,6 @@ __all__ = [
     "retrieval",
     "scores",
     "sg2loc",
+    "sharding",
     "triplet",
 ]

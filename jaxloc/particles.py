@@ -76,14 +76,26 @@ def _check_positive(name: str, value) -> None:
         raise ValueError(f"{name} must be a positive finite scalar, got {value!r}")
 
 
-def _check_region(lo, hi, heights) -> tuple[Array, Array, Array]:
-    """The float32 arrays of a floor region (2,), (2,) and its camera heights (H,), validated."""
+def _check_finite(name: str, value) -> None:
+    """Reject NaN/inf in a concrete array (tracers pass through: under jit, bad values are the
+    caller's to flag)."""
+    if isinstance(value, jax.core.Tracer):
+        return
+    if not np.all(np.isfinite(np.asarray(value))):
+        raise ValueError(f"{name} must be finite, got {np.asarray(value)}")
+
+
+def _check_region(lo, hi, heights, floor_z=0.0) -> tuple[Array, Array, Array]:
+    """The float32 arrays of a floor region (2,), (2,) and its camera heights (H,), validated
+    (shapes; finite values when concrete, ``floor_z`` included)."""
     lo, hi = jnp.asarray(lo, jnp.float32), jnp.asarray(hi, jnp.float32)
     _check_shape("lo", lo, (2,))
     _check_shape("hi", hi, (2,))
     heights = jnp.asarray(heights, jnp.float32)
     if heights.ndim != 1 or heights.shape[0] < 1:
         raise ValueError(f"heights must be a non-empty 1-D array, got shape {heights.shape}")
+    for name, value in (("lo", lo), ("hi", hi), ("heights", heights), ("floor_z", floor_z)):
+        _check_finite(name, value)
     return lo, hi, heights
 
 
@@ -201,7 +213,7 @@ def init_region(
         A :class:`ParticleState` of capacity N.
     """
     _check_capacity(capacity)
-    lo, hi, heights = _check_region(lo, hi, heights)
+    lo, hi, heights = _check_region(lo, hi, heights, floor_z)
     _check_positive("cell_size", cell_size)
     _check_positive("poses_per_cell", poses_per_cell)
     extent = jnp.maximum(hi - lo, 0.0)
@@ -251,11 +263,13 @@ def init_box(
     centres = centres[None] if centres.ndim == 1 else centres
     if centres.ndim != 2 or centres.shape[1] != 4:
         raise ValueError(f"centre must have shape (4,) or (K, 4), got {jnp.shape(centre)}")
+    _check_finite("centre", centres)
     num_centres = centres.shape[0]
     valid = jnp.ones(num_centres, bool) if centre_valid is None else jnp.asarray(centre_valid)
     _check_shape("centre_valid", valid, (num_centres,))
     half_widths = jnp.asarray(half_widths, jnp.float32)
     _check_shape("half_widths", half_widths, (3,))
+    _check_finite("half_widths", half_widths)
     _check_positive("cell_size", cell_size)
     _check_positive("poses_per_cell", poses_per_cell)
     extent = 2.0 * jnp.maximum(half_widths, 0.0)
@@ -289,6 +303,7 @@ def predict(
     _check_state(state)
     motion = jnp.asarray(motion, jnp.float32)
     _check_shape("motion", motion, (4,))
+    _check_finite("motion", motion)
     sigmas = jnp.stack(
         [jnp.asarray(sigma_trans, jnp.float32)] * 3 + [jnp.asarray(sigma_rot, jnp.float32)]
     )
@@ -433,7 +448,7 @@ def inject_uniform(
         heights: (H,) heights above the floor (metres).
     """
     _check_state(state)
-    lo, hi, heights = _check_region(lo, hi, heights)
+    lo, hi, heights = _check_region(lo, hi, heights, floor_z)
     n = state.capacity
     key_xy, key_height, key_yaw = jax.random.split(key, 3)
     xy = jax.random.uniform(key_xy, (n, 2), minval=lo, maxval=jnp.maximum(hi, lo))

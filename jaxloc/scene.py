@@ -179,7 +179,10 @@ def _objects_to_arrays(meshes, labels, embeddings, colors, edges):
         raise TypeError(f"labels must be integers, got dtype {labels_arr.dtype}")
     if np.any(labels_arr < 0):
         raise ValueError("labels must be >= 0 (-1 is reserved for padding)")
-    emb = np.asarray(embeddings, dtype=np.float64)
+    emb = np.asarray(embeddings)
+    if not (np.issubdtype(emb.dtype, np.floating) or np.issubdtype(emb.dtype, np.integer)):
+        raise TypeError(f"embeddings must be a real numeric array, got dtype {emb.dtype}")
+    emb = emb.astype(np.float64)
     if emb.ndim != 2 or emb.shape[0] != n:
         raise ValueError(f"embeddings must have shape (n, d) = ({n}, d), got {emb.shape}")
     if not np.all(np.isfinite(emb)):
@@ -207,6 +210,13 @@ def _objects_to_arrays(meshes, labels, embeddings, colors, edges):
             raise ValueError(f"object {i}: empty mesh (no faces)")
         if not np.all(np.isfinite(vertices)):
             raise ValueError(f"object {i}: mesh has NaN/inf vertices")
+        if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0:
+            raise ValueError(f"object {i}: faces must be (F, 3) vertex indices >= 0")
+        if faces.max() >= vertices.shape[0]:
+            raise ValueError(
+                f"object {i}: a face refers to vertex {int(faces.max())} but the mesh has "
+                f"{vertices.shape[0]} vertices"
+            )
         corners = vertices[faces]  # (F, 3, 3)
         area = 0.5 * np.linalg.norm(
             np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1

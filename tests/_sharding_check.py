@@ -1,0 +1,140 @@
+"""Multi-device checks of :mod:`jaxloc.sharding`, run in a subprocess by ``tests/test_sharding.py``.
+
+``XLA_FLAGS=--xla_force_host_platform_device_count=4`` must be set before jax is imported, so this
+script sets it itself and prints one JSON line of measured differences, which the test asserts on.
+Tiny sizes: the room of ``tests/_tiny_world.py`` (16 particles, 108 rays each, 4 frames) and a
+2-block sparse synthetic outdoor world with 3 queries and an empty scan (TripletLoc, top-5).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ["XLA_FLAGS"] = (
+    os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
+).strip()
+
+import hashlib  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+
+import _tiny_world as tiny  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaxloc import sharding  # noqa: E402
+from jaxloc.datasets.outdoor import make_outdoor_world, make_query  # noqa: E402
+from jaxloc.triplet import build_map, localize_scan, tripletloc_config  # noqa: E402
+
+NUM_FRAMES = tiny.CHUNK
+
+
+def digest(tree) -> str:
+    """sha256 of every leaf's bytes (bit-identical results give identical digests)."""
+    h = hashlib.sha256()
+    for leaf in jax.tree.leaves(tree):
+        h.update(np.asarray(leaf).tobytes())
+    return h.hexdigest()
+
+
+def max_abs(a, b) -> float:
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    finite = np.isfinite(a) & np.isfinite(b)
+    if not np.array_equal(np.isfinite(a), np.isfinite(b)):
+        return float("inf")
+    return float(np.max(np.abs(a[finite] - b[finite]), initial=0.0))
+
+
+def particle_checks(mesh) -> dict:
+    scene = tiny.scene()
+    config = tiny.step_config(scene)
+    frames = tiny.frames(NUM_FRAMES)
+    state = tiny.initial_state(scene)
+    key = jax.random.key(2)
+
+    single_state, single_info = tiny.RUN_PASS(key, state, frames, scene, config)
+    sharded_state, sharded_info = sharding.sharded_run_pass(
+        key,
+        sharding.shard_particles(state, mesh),
+        sharding.replicate(frames, mesh),
+        sharding.replicate(scene, mesh),
+        config,
+        mesh,
+    )
+    out = {
+        "single_digest": digest((single_state, single_info)),
+        "state_spec": str(sharded_state.poses.sharding.spec),
+        "state_devices": len(sharded_state.poses.sharding.device_set),
+        "pass_counts_equal": bool(
+            np.array_equal(single_info.num_particles, sharded_info.num_particles)
+        ),
+        "pass_active_equal": bool(np.array_equal(single_state.active, sharded_state.active)),
+        "pass_mle_diff": max_abs(single_info.mle, sharded_info.mle),
+        "pass_poses_diff": max_abs(single_state.poses, sharded_state.poses),
+        "pass_log_weights_diff": max_abs(single_state.log_weights, sharded_state.log_weights),
+        "pass_nan": bool(np.any(np.isnan(np.asarray(sharded_info.mle)))),
+    }
+
+    # independent sequences: B = 4 keys, one per device
+    batch = 4
+    keys = jax.random.split(jax.random.key(3), batch)
+    states = jax.tree.map(lambda a: jnp.stack([a] * batch), state)
+    stacked = jax.tree.map(lambda a: jnp.stack([a] * batch), frames)
+    batch_state, batch_info = sharding.sharded_run_passes(
+        keys,
+        sharding.shard_batch(states, mesh),
+        sharding.shard_batch(stacked, mesh),
+        scene,
+        config,
+        mesh,
+    )
+    run = tiny.RUN_PASS
+    diffs, counts_equal = [], True
+    for b in range(batch):
+        alone_state, alone_info = run(keys[b], state, frames, scene, config)
+        diffs.append(max_abs(alone_info.mle, batch_info.mle[b]))
+        counts_equal &= bool(np.array_equal(alone_info.num_particles, batch_info.num_particles[b]))
+    out["batch_spec"] = str(batch_info.mle.sharding.spec)
+    out["batch_mle_diff"] = max(diffs)
+    out["batch_counts_equal"] = counts_equal
+    return out
+
+
+def query_checks(mesh) -> dict:
+    world = make_outdoor_world("sparse", seed=3, blocks=2, bridge_length=100.0)
+    config = tripletloc_config(
+        query_capacity=32, top_k=5, clique_compact_size=64, clique_max_nodes=500, clique_seeds=16
+    )
+    triplet_map = build_map(world.points, world.labels, config, world.road_normals)
+    rng = np.random.default_rng(11)
+    queries = [
+        make_query(world.points, world.labels, world.road_normals, rng, max_kept=20)
+        for _ in range(3)
+    ]
+    scans = [(q.points, q.labels) for q in queries] + [(np.zeros((0, 3)), np.zeros(0, int))]
+    batched = sharding.localize_scans(triplet_map, scans, mesh)
+    alone = [localize_scan(triplet_map, None, p, lab) for p, lab in scans]
+    pairs = list(zip(alone, batched, strict=True))
+    return {
+        "queries_valid_equal": [a.valid for a in alone] == [b.valid for b in batched],
+        "queries_inliers_equal": all(np.array_equal(a.inliers, b.inliers) for a, b in pairs),
+        "queries_pose_diff": max(max_abs(a.pose, b.pose) for a, b in pairs),
+        "queries_num_valid": sum(b.valid for b in batched),
+        "queries_digest": digest([(a.pose, a.inliers) for a in alone]),
+    }
+
+
+def main() -> None:
+    mesh = sharding.device_mesh()
+    result = {"devices": jax.device_count()}
+    start = time.perf_counter()
+    result.update(particle_checks(mesh))
+    result["particle_seconds"] = time.perf_counter() - start
+    result.update(query_checks(mesh))
+    result["total_seconds"] = time.perf_counter() - start
+    print("RESULT " + json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()
