@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from jaxloc._textio import data_lines, parse_finite_floats
 from jaxloc.scene import Capacity, SceneGraph
 
 PathLike = str | os.PathLike
@@ -53,50 +54,39 @@ def load_objects_file(path: PathLike) -> tuple[list[str], np.ndarray, np.ndarray
     rows: list[list[float]] = []
     first_line: dict[str, int] = {}
     dim_line = 0
-    with path.open("r", encoding="utf-8") as f:
-        for lineno, raw in enumerate(f, start=1):
-            line = raw.split("#", 1)[0].strip()
-            if not line:
-                continue
-            where = f"{path}:{lineno}"
-            fields = line.split()
-            if len(fields) < 3:
-                raise ValueError(
-                    f"{where}: expected 'name label e_1 ... e_d' (at least one embedding value), "
-                    f"got {len(fields)} field(s)"
-                )
-            name, label_text, values = fields[0], fields[1], fields[2:]
-            if name in first_line:
-                raise ValueError(
-                    f"{where}: duplicate object name {name!r} (first on line {first_line[name]})"
-                )
-            try:
-                label = int(label_text)
-            except ValueError:
-                raise ValueError(
-                    f"{where}: label {label_text!r} of object {name!r} is not an integer"
-                ) from None
-            if label < 0:
-                raise ValueError(f"{where}: label {label} of object {name!r} must be >= 0")
-            try:
-                embedding = [float(v) for v in values]
-            except ValueError as err:
-                raise ValueError(
-                    f"{where}: embedding of object {name!r} has a non-numeric value ({err})"
-                ) from None
-            if not np.all(np.isfinite(embedding)):
-                raise ValueError(f"{where}: embedding of object {name!r} has NaN or inf")
-            if rows and len(embedding) != len(rows[0]):
-                raise ValueError(
-                    f"{where}: embedding of object {name!r} has {len(embedding)} values, "
-                    f"expected {len(rows[0])} (as on line {dim_line})"
-                )
-            if not rows:
-                dim_line = lineno
-            first_line[name] = lineno
-            names.append(name)
-            labels.append(label)
-            rows.append(embedding)
+    for lineno, line in data_lines(path, comments=True):
+        where = f"{path}:{lineno}"
+        fields = line.split()
+        if len(fields) < 3:
+            raise ValueError(
+                f"{where}: expected 'name label e_1 ... e_d' (at least one embedding value), "
+                f"got {len(fields)} field(s)"
+            )
+        name, label_text, values = fields[0], fields[1], fields[2:]
+        if name in first_line:
+            raise ValueError(
+                f"{where}: duplicate object name {name!r} (first on line {first_line[name]})"
+            )
+        try:
+            label = int(label_text)
+        except ValueError:
+            raise ValueError(
+                f"{where}: label {label_text!r} of object {name!r} is not an integer"
+            ) from None
+        if label < 0:
+            raise ValueError(f"{where}: label {label} of object {name!r} must be >= 0")
+        embedding = parse_finite_floats(values, where, f"embedding of object {name!r}")
+        if rows and len(embedding) != len(rows[0]):
+            raise ValueError(
+                f"{where}: embedding of object {name!r} has {len(embedding)} values, "
+                f"expected {len(rows[0])} (as on line {dim_line})"
+            )
+        if not rows:
+            dim_line = lineno
+        first_line[name] = lineno
+        names.append(name)
+        labels.append(label)
+        rows.append(embedding)
     if not names:
         raise ValueError(f"{path}: no objects (every line is blank or a comment)")
     return names, np.asarray(labels, np.int64), np.asarray(rows, np.float64)
@@ -126,8 +116,7 @@ def load_meshes(mesh_path: PathLike | Sequence[PathLike]) -> dict[str, trimesh.T
         path = Path(mesh_path)
         if not path.exists():
             raise FileNotFoundError(path)
-        loaded = trimesh.load(path, force="scene", process=False)
-        meshes = _scene_meshes(loaded, path)
+        meshes = _scene_meshes(_load_file(path), path)
         if not meshes:
             raise ValueError(f"{path}: no triangle meshes in the file")
         return meshes
@@ -140,13 +129,22 @@ def load_meshes(mesh_path: PathLike | Sequence[PathLike]) -> dict[str, trimesh.T
             raise ValueError(
                 f"two mesh files share the stem {path.stem!r}: object names must be unique"
             )
-        inner = _scene_meshes(trimesh.load(path, force="scene", process=False), path)
+        inner = _scene_meshes(_load_file(path), path)
         if len(inner) != 1:
             raise ValueError(
                 f"{path}: expected one mesh per file in a list of object files, found {len(inner)}"
             )
         out[path.stem] = next(iter(inner.values()))
     return out
+
+
+def _load_file(path: Path) -> trimesh.Scene:
+    """``trimesh.load`` of one file as a scene; a corrupt or truncated file raises ``ValueError``
+    naming it (trimesh's own exceptions vary by format)."""
+    try:
+        return trimesh.load(path, force="scene", process=False)
+    except Exception as err:  # noqa: BLE001 - any parser failure is a bad file
+        raise ValueError(f"{path}: not a readable mesh file ({type(err).__name__}: {err})") from err
 
 
 def _scene_meshes(scene: trimesh.Scene, path: Path) -> dict[str, trimesh.Trimesh]:

@@ -119,8 +119,8 @@ def _write_map(root: Path, trunk_lines: str):
     "lines, message",
     [
         ("0 1 2\n", "expected 4 fields"),
-        ("0 1 x 3\n", "not a number"),
-        ("0 1 nan 3\n", "non-finite"),
+        ("0 1 x 3\n", "non-numeric value"),
+        ("0 1 nan 3\n", "NaN or inf"),
     ],
 )
 def test_malformed_map_line_is_a_clear_error(tmp_path, lines, message):

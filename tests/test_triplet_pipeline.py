@@ -8,6 +8,7 @@ import jaxloc.triplet._pipeline as pipeline
 from jaxloc.datasets.outdoor import make_outdoor_world, make_query
 from jaxloc.lsq import RobustLoss
 from jaxloc.triplet import (
+    TripletConfig,
     build_map,
     localization_errors,
     localize_scan,
@@ -15,6 +16,7 @@ from jaxloc.triplet import (
     register,
     weighted_kabsch,
 )
+from jaxloc.triplet._pipeline import verified_fraction
 
 
 @pytest.fixture(scope="module")
@@ -154,3 +156,40 @@ def test_plain_arrays_api(world, triplet_map):
     rte, rre = localization_errors(result.pose, q.T_map_scan)
     assert result.valid and rte < 7.5 and rre < 10
     assert result.pose.shape == (4, 4) and result.descriptor_time_ms > 0
+
+
+def test_verified_fraction_matches_numpy():
+    rng = np.random.default_rng(9)
+    map_points = rng.uniform(-20, 20, (30, 3)).astype(np.float32)
+    map_classes = rng.integers(0, 3, 30).astype(np.int32)
+    T = random_transform(rng).astype(np.float32)
+    T[:3, 3] = rng.uniform(-2, 2, 3)
+    scan = (map_points[:12] - T[:3, 3]) @ T[:3, :3] + rng.normal(0, 1.0, (12, 3))
+    classes = map_classes[:12].copy()
+    classes[:3] = (classes[:3] + 1) % 3  # wrong class: never verified by a same-class vertex
+    mask = np.arange(12) < 10
+    got = verified_fraction(T, scan, classes, mask, map_points, map_classes, 1.5)
+    moved = scan @ T[:3, :3].T + T[:3, 3]
+    distance = np.linalg.norm(moved[:, None] - map_points[None], axis=-1)
+    distance[classes[:, None] != map_classes[None, :]] = np.inf
+    expected = np.mean(distance.min(axis=1)[mask] <= 1.5)
+    np.testing.assert_allclose(float(got), expected, atol=1e-6)
+
+
+def test_scan_from_another_place_is_rejected(world, triplet_map):
+    # a query cut from a different world: the clique is chance agreement, and under its pose
+    # few scan vertices land on map vertices of their class (TripletConfig.min_inlier_fraction)
+    foreign = make_outdoor_world("dense", seed=11, blocks=1, bridge_length=0.0)
+    rng = np.random.default_rng(10)
+    threshold = TripletConfig().min_inlier_fraction
+    assert 0 < threshold < 1
+    for _ in range(2):
+        q = make_query(foreign.points, foreign.labels, foreign.road_normals, rng, max_kept=40)
+        result = localize_scan(triplet_map, None, q.points, q.labels)
+        assert result.inlier_fraction < threshold
+    q = make_query(world.points, world.labels, world.road_normals, rng, max_kept=40)
+    result = localize_scan(triplet_map, None, q.points, q.labels)
+    rte, rre = localization_errors(result.pose, q.T_map_scan)
+    assert result.valid and rte < 7.5 and rre < 10 and result.inlier_fraction >= threshold
+    with pytest.raises(ValueError, match="min_inlier_fraction"):
+        TripletConfig(min_inlier_fraction=1.5)

@@ -2,6 +2,9 @@
 
 :func:`max_clique` (pure JAX, static sizes) always returns a clique:
 
+0. prefilter: degrees of the whole graph (its only O(n^2) pass), then the ``prefilter_size``
+   vertices of highest degree form the working subgraph (a clique larger than a bound ``g`` only
+   uses vertices of degree ``>= g``, so nothing is lost while at most that many qualify);
 1. a lower bound from greedy expansions seeded at the highest-degree vertices in parallel (each
    step adds the candidate of highest degree, candidates = common neighbours of the clique so far);
 2. peeling: a clique larger than the bound ``g`` only uses vertices with ``>= g`` neighbours inside
@@ -12,9 +15,9 @@
    colouring of the compact graph) searches for a clique larger than ``g``, within ``max_nodes``
    expansions.
 
-The answer is certified maximum (``exact = True``) when nothing survives the peeling, or when the
-survivors fit the compact capacity and the search finished within its budget. A truncated run still
-returns the largest clique it found.
+The answer is certified maximum (``exact = True``) when the prefilter kept every vertex of degree
+``>= g`` and either nothing survives the peeling, or the survivors fit the compact capacity and
+the search finished within its budget. A truncated run still returns the largest clique it found.
 
 :func:`max_clique_exact` is a host-side exact solver (Tomita-style branch and bound with greedy
 colouring bounds) used to validate the jitted one.
@@ -173,11 +176,74 @@ def _branch_and_bound(
     return best, best_size, depth < 0
 
 
-@partial(jax.jit, static_argnames=("compact_size", "max_nodes", "num_seeds"))
+def _degree(adjacency: Array) -> Array:
+    """(n,) int32 degrees of a symmetric bool adjacency.
+
+    Summed over axis 0 (equal to axis 1 for a symmetric matrix): XLA:CPU reduces the leading axis
+    of a large matrix several times faster than the trailing one.
+    """
+    return jnp.sum(adjacency, axis=0, dtype=jnp.int32)
+
+
+def max_clique_symmetric(
+    adjacency: Array,
+    valid: Array,
+    *,
+    prefilter_size: int = 256,
+    compact_size: int = 128,
+    max_nodes: int = 50000,
+    num_seeds: int = 64,
+) -> tuple[Array, Array]:
+    """:func:`max_clique_with_info` for an adjacency that is already symmetric, masked by
+    ``valid`` and False on the diagonal (e.g. from :func:`consistency_graph`); traceable.
+
+    The (n, n) graph is touched once (degrees); everything else runs on the ``prefilter_size``
+    vertices of highest degree: any clique larger than the greedy bound ``g`` only uses vertices
+    of degree ``>= g``, so the answer stays certified when at most ``prefilter_size`` of them exist.
+    """
+    n = adjacency.shape[0]
+    degree = jnp.where(valid, _degree(adjacency), -1)
+    q = min(prefilter_size, n)
+    _, kept = jax.lax.top_k(degree, q)
+    kept_valid = degree[kept] >= 0
+    sub = adjacency[kept][:, kept] & kept_valid[:, None] & kept_valid[None, :]
+    sub_degree = degree[kept]
+    greedy = _greedy_from_seeds(sub, kept_valid, sub_degree, num_seeds)
+    greedy_size = jnp.sum(greedy).astype(jnp.int32)
+    bound = greedy_size.astype(jnp.float32)
+    survivors = _peel(sub, kept_valid & (sub_degree >= greedy_size), bound)
+    count = jnp.sum(survivors)
+    # every vertex that could join a larger clique is inside the prefiltered set
+    complete = jnp.sum(degree >= greedy_size) <= q
+
+    p = min(compact_size, -(-q // _WORD) * _WORD)
+    score = jnp.where(survivors, sub_degree, -1)
+    _, order = jax.lax.top_k(score, min(p, q))
+    # Branch on low-degree vertices first (bit order = ascending degree among the kept ones):
+    # removing them early shrinks later candidate sets (Carraghan-Pardalos ordering).
+    order = order[::-1]
+    order = jnp.concatenate([order, jnp.zeros(p - order.shape[0], order.dtype)])
+    in_compact = jnp.concatenate([survivors[order[: min(p, q)]], jnp.zeros(p - min(p, q), bool)])
+    compact = sub[order][:, order] & in_compact[:, None] & in_compact[None, :]
+    colour = _greedy_colouring(compact, in_compact)
+    colour_bits = _pack(colour[None, :] == jnp.arange(p)[:, None])
+    best_bits, best_size, finished = _branch_and_bound(
+        _pack(compact), _pack(in_compact), colour_bits, greedy_size, max_nodes
+    )
+    found = _unpack(best_bits)[:p] & in_compact
+    improved = best_size > greedy_size
+    in_sub = jnp.where(improved, jnp.zeros(q, bool).at[order].max(found), greedy)
+    mask = jnp.zeros(n, bool).at[kept].max(in_sub & kept_valid)
+    exact = complete & ((count == 0) | ((count <= p) & finished))
+    return mask, exact
+
+
+@partial(jax.jit, static_argnames=("prefilter_size", "compact_size", "max_nodes", "num_seeds"))
 def max_clique_with_info(
     adjacency: Array,
     valid: Array | None = None,
     *,
+    prefilter_size: int = 256,
     compact_size: int = 128,
     max_nodes: int = 50000,
     num_seeds: int = 64,
@@ -187,6 +253,8 @@ def max_clique_with_info(
     Args:
         adjacency: (n, n) bool, symmetric (the AND with its transpose is used; diagonal ignored).
         valid: (n,) bool vertex mask (padding False) or None for all.
+        prefilter_size: static number of highest-degree vertices searched (see
+            :func:`max_clique_symmetric`).
         compact_size: static capacity of the exact stage (a multiple of 32).
         max_nodes: static budget of branch-and-bound expansions.
         num_seeds: static number of greedy seeds (highest degree first).
@@ -198,39 +266,21 @@ def max_clique_with_info(
     if compact_size % _WORD:
         raise ValueError(f"compact_size must be a multiple of {_WORD}, got {compact_size}")
     a, valid = _symmetric(adjacency, valid)
-    n = a.shape[0]
-    degree = jnp.sum(a, axis=1).astype(jnp.int32)
-    greedy = _greedy_from_seeds(a, valid, degree, num_seeds)
-    greedy_size = jnp.sum(greedy).astype(jnp.int32)
-    survivors = _peel(a, valid & (degree >= greedy_size), greedy_size.astype(jnp.float32))
-    count = jnp.sum(survivors)
-
-    p = min(compact_size, -(-n // _WORD) * _WORD)
-    score = jnp.where(survivors, degree, -1)
-    _, order = jax.lax.top_k(score, min(p, n))
-    # Branch on low-degree vertices first (bit order = ascending degree among the kept ones):
-    # removing them early shrinks later candidate sets (Carraghan-Pardalos ordering).
-    order = order[::-1]
-    order = jnp.concatenate([order, jnp.zeros(p - order.shape[0], order.dtype)])
-    in_compact = jnp.concatenate([survivors[order[: min(p, n)]], jnp.zeros(p - min(p, n), bool)])
-    sub = a[order][:, order] & in_compact[:, None] & in_compact[None, :]
-    colour = _greedy_colouring(sub, in_compact)
-    colour_bits = _pack(colour[None, :] == jnp.arange(p)[:, None])
-    best_bits, best_size, finished = _branch_and_bound(
-        _pack(sub), _pack(in_compact), colour_bits, greedy_size, max_nodes
+    return max_clique_symmetric(
+        a,
+        valid,
+        prefilter_size=prefilter_size,
+        compact_size=compact_size,
+        max_nodes=max_nodes,
+        num_seeds=num_seeds,
     )
-    found = _unpack(best_bits)[:p] & in_compact
-    improved = best_size > greedy_size
-    from_search = jnp.zeros(n, bool).at[order].max(found)
-    mask = jnp.where(improved, from_search, greedy)
-    exact = (count == 0) | ((count <= p) & finished)
-    return mask, exact
 
 
 def max_clique(
     adjacency: Array,
     valid: Array | None = None,
     *,
+    prefilter_size: int = 256,
     compact_size: int = 128,
     max_nodes: int = 50000,
     num_seeds: int = 64,
@@ -240,7 +290,12 @@ def max_clique(
     Jitted (see :func:`max_clique_with_info` for the algorithm and the certificate flag).
     """
     return max_clique_with_info(
-        adjacency, valid, compact_size=compact_size, max_nodes=max_nodes, num_seeds=num_seeds
+        adjacency,
+        valid,
+        prefilter_size=prefilter_size,
+        compact_size=compact_size,
+        max_nodes=max_nodes,
+        num_seeds=num_seeds,
     )[0]
 
 

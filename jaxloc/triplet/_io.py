@@ -11,6 +11,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxloc._textio import read_float_table
+
 TRUNK, POLE, TRAFFIC_SIGN = 15, 17, 18
 #: The classes TripletLoc/M2Loc build graphs from.
 GRAPH_CLASSES: tuple[int, ...] = (TRUNK, POLE, TRAFFIC_SIGN)
@@ -79,31 +81,6 @@ class RoadNormals(NamedTuple):
     std_deg: np.ndarray
 
 
-def _read_table(path: Path, columns: int, what: str) -> np.ndarray:
-    """Parse a whitespace table of ``columns`` finite numbers per non-empty line, validated."""
-    rows = []
-    with open(path, encoding="utf-8") as handle:
-        for line_number, line in enumerate(handle, start=1):
-            fields = line.split()
-            if not fields:
-                continue
-            if len(fields) != columns:
-                raise ValueError(
-                    f"{path}:{line_number}: expected {columns} fields ({what}), got "
-                    f"{len(fields)}: {line.strip()!r}"
-                )
-            try:
-                values = [float(field) for field in fields]
-            except ValueError as error:
-                raise ValueError(
-                    f"{path}:{line_number}: not a number in {line.strip()!r}"
-                ) from error
-            if not np.all(np.isfinite(values)):
-                raise ValueError(f"{path}:{line_number}: non-finite value in {line.strip()!r}")
-            rows.append(values)
-    return np.asarray(rows, np.float64).reshape(-1, columns)
-
-
 def load_instance_map(map_dir: str | Path, classes: tuple[int, ...] = GRAPH_CLASSES) -> InstanceMap:
     """Read ``<map_dir>/instances/<class>.txt`` files (lines ``id x y z``) into one InstanceMap.
 
@@ -113,7 +90,7 @@ def load_instance_map(map_dir: str | Path, classes: tuple[int, ...] = GRAPH_CLAS
     """
     points, labels, ids = [], [], []
     for class_id in classes:
-        table = _read_table(Path(map_dir) / "instances" / f"{class_id}.txt", 4, "id x y z")
+        table = read_float_table(Path(map_dir) / "instances" / f"{class_id}.txt", 4, "id x y z")
         if np.any(table[:, 0] != np.round(table[:, 0])):
             raise ValueError(f"{map_dir}/instances/{class_id}.txt: non-integer instance id")
         points.append(table[:, 1:4])
@@ -129,7 +106,7 @@ def load_road_normals(map_dir: str | Path) -> RoadNormals:
         ValueError: a malformed line, a zero normal, or a negative standard deviation.
     """
     path = Path(map_dir) / "RSN" / "road_normal.txt"
-    table = _read_table(path, 6, "x y nx ny nz std_deg")
+    table = read_float_table(path, 6, "x y nx ny nz std_deg")
     norms = np.linalg.norm(table[:, 2:5], axis=1)
     if np.any(norms < 1e-6):
         raise ValueError(f"{path}: zero-length road normal")

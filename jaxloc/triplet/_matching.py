@@ -62,8 +62,9 @@ def consistency_graph(
     """
 
     def distances(points):
-        diff = points[:, None, :] - points[None, :, :]
-        return jnp.sqrt(jnp.sum(diff * diff, axis=-1))
+        # per coordinate: XLA:CPU fuses (A, A) planes far better than an (A, A, 3) reduction
+        squared = sum((points[:, None, c] - points[None, :, c]) ** 2 for c in range(3))
+        return jnp.sqrt(squared)
 
     consistent = jnp.abs(distances(query_points) - distances(map_points)) <= threshold
     n = valid.shape[0]

@@ -6,6 +6,12 @@ maximum clique of the consistency graph with the dynamic enhancement of M2Loc (e
 scale-1 matches; while the clique has fewer than ``min_clique`` vertices and scales remain, add the
 next scale's matches and solve again), and estimates ``T_map_scan`` (Kabsch, then GNC-TLS with the
 optional road-surface-normal roll/pitch prior). Queries of the same capacity reuse one compilation.
+
+Place-not-in-the-map rejection: a scan from elsewhere still yields a (chance) clique and a pose, so
+the pose is verified: the fraction of the scan's vertices that land within ``verify_radius`` of a
+map vertex of their class must reach ``min_inlier_fraction`` (default 0.5: true queries keep about
+80 %, chance poses about 10 %; see ``experiments/results/m2loc/rejection.md``), besides the clique
+holding at least ``min_inliers`` vertices.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ import numpy as np
 from jax import Array
 
 from jaxloc.lsq import RobustLoss
-from jaxloc.triplet._clique import max_clique_with_info
+from jaxloc.triplet._clique import max_clique_symmetric
 from jaxloc.triplet._descriptors import (
     DescriptorConfig,
     describe_map,
@@ -44,11 +50,16 @@ class TripletConfig(eqx.Module):
         consistency_threshold: metres, ``| |q_i - q_j| - |m_i - m_j| |`` bound of an edge.
         min_clique: M2Loc's T: add scales while the clique is smaller than this.
         min_inliers: fewer clique vertices than this gives ``valid = False``.
+        min_inlier_fraction: place-not-in-the-map rejection: after registration, the fraction of
+            the scan's vertices that land within ``verify_radius`` of a map vertex of their class
+            must reach this (0 disables; see ``experiments/results/m2loc/rejection.md``).
+        verify_radius: metres, the verification radius.
         loss: robust loss of the pose refinement (GNC-TLS, 1 m, by default).
         use_rsn: use the road-surface-normal prior when the map has RSN cells.
         rot_delta_deg: added to an RSN cell's normal std (degrees) for the prior's sigma.
         query_capacity: static padded query size (None: next power of two >= 32).
-        clique_compact_size, clique_max_nodes, clique_seeds: :func:`max_clique` parameters.
+        clique_prefilter_size, clique_compact_size, clique_max_nodes, clique_seeds:
+            :func:`max_clique` parameters.
         solver_steps: optimiser steps per solve.
     """
 
@@ -57,10 +68,13 @@ class TripletConfig(eqx.Module):
     consistency_threshold: float = eqx.field(static=True, default=1.0)
     min_clique: int = eqx.field(static=True, default=10)
     min_inliers: int = eqx.field(static=True, default=3)
+    min_inlier_fraction: float = eqx.field(static=True, default=0.5)
+    verify_radius: float = eqx.field(static=True, default=1.5)
     loss: RobustLoss = RobustLoss("gnc_tls", 1.0)
     use_rsn: bool = eqx.field(static=True, default=True)
     rot_delta_deg: float = eqx.field(static=True, default=1.0)
     query_capacity: int | None = eqx.field(static=True, default=None)
+    clique_prefilter_size: int = eqx.field(static=True, default=256)
     clique_compact_size: int = eqx.field(static=True, default=128)
     clique_max_nodes: int = eqx.field(static=True, default=4000)
     clique_seeds: int = eqx.field(static=True, default=64)
@@ -71,6 +85,8 @@ class TripletConfig(eqx.Module):
             raise ValueError("top_k >= 1, min_inliers >= 3 and min_clique >= 1 are required")
         if not self.consistency_threshold > 0:
             raise ValueError("consistency_threshold must be > 0")
+        if not 0.0 <= self.min_inlier_fraction <= 1.0 or not self.verify_radius > 0:
+            raise ValueError("min_inlier_fraction must be in [0, 1] and verify_radius > 0")
 
 
 def tripletloc_config(**overrides) -> TripletConfig:
@@ -129,6 +145,8 @@ class LocalizationResult(NamedTuple):
         scales_used: how many scales the dynamic enhancement used.
         clique_exact: whether the clique solver certified the clique as maximum.
         num_associations: associations in the final graph.
+        inlier_fraction: fraction of scan vertices within ``verify_radius`` of a same-class map
+            vertex under the estimated pose (the place-not-in-the-map check).
         descriptor_time_ms: query descriptor time; match_time_ms: match + clique + pose time.
     """
 
@@ -139,6 +157,7 @@ class LocalizationResult(NamedTuple):
     scales_used: int
     clique_exact: bool
     num_associations: int
+    inlier_fraction: float
     descriptor_time_ms: float
     match_time_ms: float
 
@@ -241,6 +260,35 @@ class QueryOutput(eqx.Module):
     association_valid: Array
     scales_used: Array
     clique_exact: Array
+    inlier_fraction: Array
+
+
+def verified_fraction(
+    T_map_scan: Array,
+    points: Array,
+    classes: Array,
+    mask: Array,
+    map_points: Array,
+    map_classes: Array,
+    radius: float,
+) -> Array:
+    """Fraction of real scan vertices within ``radius`` of a same-class map vertex after ``T``.
+
+    Args:
+        T_map_scan: (4, 4) pose in the frame of ``map_points``.
+        points: (Nq, 3) scan vertices; classes: (Nq,) int32; mask: (Nq,) bool real vertices.
+        map_points: (Nm, 3); map_classes: (Nm,) int32.
+        radius: metres.
+
+    Returns:
+        float32 scalar in [0, 1] (0 for an empty mask).
+    """
+    moved = points @ T_map_scan[:3, :3].T + T_map_scan[:3, 3]
+    # (Nm, Nq) layout: XLA:CPU reduces the leading axis fastest
+    squared = sum((map_points[:, None, c] - moved[None, :, c]) ** 2 for c in range(3))
+    squared = jnp.where(map_classes[:, None] == classes[None, :], squared, jnp.inf)
+    near = (jnp.min(squared, axis=0) <= radius * radius) & mask
+    return jnp.sum(near) / jnp.maximum(jnp.sum(mask), 1)
 
 
 @eqx.filter_jit
@@ -250,6 +298,7 @@ def register_query(
     classes: Array,
     descriptors: Array,
     descriptor_valid: Array,
+    mask: Array | None = None,
 ) -> QueryOutput:
     """Match, build the consistency graph, clique with dynamic enhancement, pose; pure and jitted.
 
@@ -257,6 +306,7 @@ def register_query(
         triplet_map: the described map.
         points: (Nq, 3) float32 query vertices (scan frame); classes: (Nq,) int32 class positions.
         descriptors: (S, Nq, D) and descriptor_valid (S, Nq) from :func:`describe_query`.
+        mask: (Nq,) bool real vertices (None: vertices with a descriptor at some scale).
 
     Returns:
         A :class:`QueryOutput` with ``T_map_scan`` (4, 4) in the map frame (origin added back).
@@ -275,10 +325,10 @@ def register_query(
         triplet_map.classes,
         k,
     )  # (S, Nq, k)
-    earlier = jnp.tril(jnp.ones((num_scales, num_scales), bool), -1)  # [s, s'] s' < s
-    # same[s, i, j, s', j']: association (s, i, j) repeats (s', i, j') of an earlier scale
-    same = map_index[:, :, :, None, None] == jnp.moveaxis(map_index, 0, 1)[None, :, None, :, :]
-    duplicate = jnp.any(same & earlier[:, None, None, :, None], axis=(3, 4))
+    duplicate = jnp.zeros(map_index.shape, bool)
+    for s in range(1, num_scales):  # an association repeated from an earlier scale is dropped
+        same = map_index[s, :, :, None, None] == map_index[:s].transpose(1, 0, 2)[:, None]
+        duplicate = duplicate.at[s].set(jnp.any(same, axis=(2, 3)))
     assoc_valid = ((map_index >= 0) & ~duplicate).reshape(-1)
     assoc_query = jnp.broadcast_to(jnp.arange(nq)[None, :, None], map_index.shape).reshape(-1)
     assoc_map = map_index.reshape(-1)
@@ -300,9 +350,10 @@ def register_query(
                 assoc_valid[:size],
                 config.consistency_threshold,
             )
-            clique, exact = max_clique_with_info(
+            clique, exact = max_clique_symmetric(
                 adjacency,
                 assoc_valid[:size],
+                prefilter_size=config.clique_prefilter_size,
                 compact_size=config.clique_compact_size,
                 max_nodes=config.clique_max_nodes,
                 num_seeds=config.clique_seeds,
@@ -347,8 +398,14 @@ def register_query(
         normal_sigma=sigma,
         max_steps=config.solver_steps,
     )
-    valid = solution.ok & (clique_size >= config.min_inliers)
     matrix = solution.pose.as_matrix()
+    mask = jnp.any(descriptor_valid, axis=0) if mask is None else mask
+    fraction = verified_fraction(
+        matrix, points, classes, mask, triplet_map.points, triplet_map.classes, config.verify_radius
+    )
+    valid = (
+        solution.ok & (clique_size >= config.min_inliers) & (fraction >= config.min_inlier_fraction)
+    )
     matrix = matrix.at[:3, 3].add(triplet_map.origin)
     matrix = jnp.where(valid, matrix, jnp.eye(4, dtype=matrix.dtype))
     return QueryOutput(
@@ -360,6 +417,7 @@ def register_query(
         association_valid=assoc_valid & (assoc_scale <= scale),
         scales_used=scale + 1,
         clique_exact=exact,
+        inlier_fraction=fraction,
     )
 
 
@@ -372,7 +430,8 @@ def _capacity(n: int, config: TripletConfig) -> int:
 
 
 def _invalid_result() -> LocalizationResult:
-    return LocalizationResult(np.eye(4), False, 0, np.zeros((0, 2), np.int64), 0, True, 0, 0.0, 0.0)
+    no_pairs = np.zeros((0, 2), np.int64)
+    return LocalizationResult(np.eye(4), False, 0, no_pairs, 0, True, 0, 0.0, 0.0, 0.0)
 
 
 def localize_scan(
@@ -436,6 +495,7 @@ def localize_scan(
             jnp.asarray(padded_classes),
             descriptors,
             descriptor_valid,
+            jnp.asarray(mask),
         )
     )
     end = time.perf_counter()
@@ -451,6 +511,7 @@ def localize_scan(
         scales_used=int(out.scales_used),
         clique_exact=bool(out.clique_exact),
         num_associations=int(np.asarray(out.association_valid).sum()),
+        inlier_fraction=float(out.inlier_fraction),
         descriptor_time_ms=1e3 * (middle - start),
         match_time_ms=1e3 * (end - middle),
     )
