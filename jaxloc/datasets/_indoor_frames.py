@@ -34,8 +34,7 @@ def render_views(
         object id (T, H, W) int32 (-1 on a miss), z-depth along the optical axis (T, H, W)
         float32 metres (+inf on a miss) and colour (T, H, W, 3) float32 in [0, 1].
     """
-    count = len(meshes)
-    scene = SceneGraph.from_meshes(list(meshes), np.arange(count), np.eye(count, dtype=np.float32))
+    scene = _bucketed_scene(list(meshes))
     grid = stride_grid(camera, 1)
     object_ids = np.asarray(object_ids, np.int32)
     views = [
@@ -55,6 +54,25 @@ def render_views(
 
 
 _render_view = jax.jit(render)
+
+
+def _bucketed_scene(meshes: list) -> SceneGraph:
+    """The meshes as a render-only scene padded to power-of-two capacities.
+
+    Rooms differ in object and triangle counts; padding each count up to the next power of two
+    lets the rooms of a dataset share a handful of compiled renderers instead of compiling one
+    per room (the traversal only visits real nodes, so the padding costs memory, not time).
+    """
+    count = len(meshes)
+    labels, embeddings = np.arange(count), np.ones((count, 1), np.float32)
+    exact = SceneGraph.from_meshes(meshes, labels, embeddings).capacity
+    bucket = exact._replace(
+        **{
+            name: 1 << max(int(getattr(exact, name)) - 1, 1).bit_length()
+            for name in ("objects", "triangles", "nodes", "leaves", "edges")
+        }
+    )
+    return SceneGraph.from_meshes(meshes, labels, embeddings, capacity=bucket)
 
 
 def dominant_objects(object_images: np.ndarray, camera: Camera, rows: int, cols: int) -> np.ndarray:
