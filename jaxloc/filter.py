@@ -111,6 +111,8 @@ class StepInfo(NamedTuple):
         num_particles: int32 particles after KLD resampling.
         num_bins: int32 occupied KLD bins.
         degenerate: bool, every likelihood underflowed (weights reset to uniform).
+        motion_valid: bool, the frame's ego-motion was finite. A non-finite one is replaced by
+            zero motion (the particles move by the motion noise only), so it cannot poison them.
         semantic, depth, color, log_likelihood: the MLE particle's scores.
         particles: (N, 4) particle poses after the update (before resampling).
         particle_weights: (N,) their normalised weights (0 for inactive slots).
@@ -121,6 +123,7 @@ class StepInfo(NamedTuple):
     num_particles: Array
     num_bins: Array
     degenerate: Array
+    motion_valid: Array
     semantic: Array
     depth: Array
     color: Array
@@ -169,10 +172,13 @@ def step(
 ) -> tuple[ParticleState, StepInfo]:
     """One SG2Loc filter step: predict, render, score, weight, estimate, resample, inject.
 
-    The first frame (``frame.index == 0``) is not moved: its particles are the initial set.
+    The first frame (``frame.index == 0``) is not moved: its particles are the initial set. A
+    non-finite ego-motion counts as zero motion and is flagged in ``info.motion_valid``.
     """
     key_motion, key_resample, key_inject = jax.random.split(key, 3)
-    moved = predict(key_motion, state, frame.motion, config.sigma_trans, config.sigma_rot)
+    motion_valid = jnp.all(jnp.isfinite(frame.motion))
+    motion = jnp.where(motion_valid, frame.motion, 0.0)
+    moved = predict(key_motion, state, motion, config.sigma_trans, config.sigma_rot)
     state = jax.tree.map(lambda a, b: jnp.where(frame.index > 0, a, b), moved, state)
 
     # Inactive slots cast invalid (NaN) rays, which the traversal retires at once.
@@ -208,6 +214,7 @@ def step(
         num_particles=kld_info.num_particles,
         num_bins=kld_info.num_bins,
         degenerate=degenerate,
+        motion_valid=motion_valid,
         semantic=scores.semantic[best],
         depth=scores.depth[best],
         color=scores.color[best],

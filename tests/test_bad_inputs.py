@@ -123,11 +123,6 @@ def _write_instance_map(root, text15: bytes) -> None:
     (root / "instances" / "18.txt").write_text("0 4 5 6\n")
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="jaxloc.triplet._io._read_table opens with encoding='utf-8' and lets "
-    "UnicodeDecodeError escape without the file name (triplet owner)",
-)
 def test_instance_map_file_that_is_not_utf8_names_the_file(tmp_path):
     _write_instance_map(tmp_path, b"0 1 2 3\n\xff\xfe 1 2\n")
     with pytest.raises(ValueError, match=r"15\.txt"):
@@ -267,14 +262,9 @@ def test_nan_in_a_frame_observation_leaves_the_poses_finite(world, field):
     assert _finite(state.poses) and _finite(info.mle), field
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="jaxloc.filter.step composes a NaN ego-motion into every particle: all poses become "
-    "NaN for the rest of the run, with no flag (filter owner; Sequence rejects NaN ego-motion at "
-    "the user boundary, but a hand-built Frame is not checked)",
-)
 def test_nan_ego_motion_in_a_frame_does_not_poison_the_particles(world):
     frames = world[3]
     poisoned = eqx.tree_at(lambda f: f.motion, frames, frames.motion.at[1].set(jnp.nan))
     state, info = _run(world, poisoned)
     assert _finite(state.poses) and _finite(info.mle)
+    np.testing.assert_array_equal(np.asarray(info.motion_valid), np.arange(len(frames.index)) != 1)
