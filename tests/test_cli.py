@@ -233,7 +233,10 @@ def _malformed(tmp_path: Path, map_dir: Path, queries) -> dict:
     return {
         "missing map": ([tmp_path / "nope", good_scan], "map folder not found"),
         "map without a class file": ([partial_map, good_scan], "missing instances/17.txt"),
-        "malformed map line": ([bad_map, good_scan], "17.txt:2: not a number"),
+        "malformed map line": (
+            [bad_map, good_scan],
+            "17.txt:2: line '1 1.0 abc 3.0' has a non-numeric value",
+        ),
         "missing scan": ([map_dir, tmp_path / "absent.txt"], "missing scan"),
         "short scan line": ([map_dir, short], "short.txt:1: expected 4 numbers"),
         "unknown class": ([map_dir, unknown], "unknown class ids [12]"),

@@ -1,0 +1,248 @@
+"""The ``jaxloc`` command line.
+
+* ``jaxloc demo``: localize a camera in an embedded synthetic room (SG2Loc, no downloads).
+* ``jaxloc localize-lidar MAP_DIR SCAN...``: one-shot LiDAR localization (M2Loc) of scans in a
+  HeLiPR/TripletLoc instance map; prints ``T_map_scan`` per scan, optionally RTE/RRE.
+* ``jaxloc bench raycast|filter|triplet``: quick in-package speed checks after compilation.
+
+Input problems (missing or malformed files, bad numbers) end with exit code 2 and a one-line
+message on stderr, never a traceback. ``main(argv)`` returns the exit code, so the command can be
+called in-process (tests do).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from jaxloc.cli._bench import run_bench_filter, run_bench_raycast, run_bench_triplet
+from jaxloc.cli._demo import run_demo
+from jaxloc.cli._errors import InputError, run_guarded
+from jaxloc.cli._lidar import run_localize_lidar
+
+__all__ = ["InputError", "build_parser", "main"]
+
+
+_MAIN_EPILOG = """\
+examples:
+  jaxloc demo                                    # camera localization in a synthetic room
+  jaxloc localize-lidar maps/KAIST04 scans/000000.bin
+  jaxloc localize-lidar maps/KAIST04 scans/*.bin --gt poses.txt --json > result.json
+  jaxloc bench raycast --poses 64
+  jaxloc bench triplet --queries 20
+
+Run `jaxloc COMMAND --help` for the options of a command.
+"""
+
+_LIDAR_DESCRIPTION = """\
+One-shot global localization of LiDAR scans in an instance map (M2Loc / TripletLoc).
+
+MAP_DIR is a HeLiPR/TripletLoc instance map folder:
+  MAP_DIR/instances/15.txt, 17.txt, 18.txt   lines "id x y z" (trunks, poles, traffic signs;
+                                             map frame, metres)
+  MAP_DIR/RSN/road_normal.txt                optional, lines "x y nx ny nz std_deg": road-surface
+                                             normals, used as a roll/pitch prior
+
+Each SCAN is one of:
+  NAME.bin       a SemanticKITTI scan (float32 x y z intensity); its labels NAME.label are read
+                 from beside it or from ../labels/ (the dataset layout). Instances are clustered
+                 from the trunk, pole and traffic-sign points (TripletLoc's recipe).
+  NAME.txt       instance centroids already extracted: lines "class_id x y z" (class_id 15, 17
+                 or 18; scan frame, metres; '#' starts a comment)
+  a folder       instances/15.txt, 17.txt, 18.txt in the map's own format
+
+The map's descriptors are built once; every scan is then described, matched, and registered.
+Per scan it prints the 4x4 T_map_scan (p_map = T_map_scan @ p_scan), whether it is valid, the
+size of the maximum clique of consistent matches, and the times. The first scan of each
+instance count band (32, 64, ...) also compiles (reported separately).
+"""
+
+_LIDAR_EPILOG = """\
+examples:
+  jaxloc localize-lidar ../shared/data/helipr_instance_maps/KAIST04 \\
+      ../shared/data/semantickitti_scan/000000.bin
+  jaxloc localize-lidar MAP scan_centroids.txt --scales 1 -k 10
+  jaxloc localize-lidar MAP scans/*.txt --gt poses.txt --json > result.json
+
+--gt FILE: one ground-truth T_map_scan per line, in the order of the scans: 12 numbers (KITTI
+3x4, row-major) or 16 (4x4, row-major). Then RTE (m) and RRE (deg) are printed, and the success
+rate (valid, RTE < 7.5 m, RRE < 10 deg).
+
+exit status: 0 on success, 2 on missing or malformed files or bad options (one-line message).
+"""
+
+_BENCH_EPILOG = """\
+examples:
+  jaxloc bench raycast                           # rays/s of render_batch
+  jaxloc bench raycast --poses 256 --width 320 --height 180
+  jaxloc bench filter --particles 2500           # s/frame of one SG2Loc filter step
+  jaxloc bench triplet --queries 50 --scales 3   # ms/query of M2Loc
+  jaxloc bench triplet --map ../shared/data/helipr_instance_maps/KAIST04
+
+Times are after compilation (compile time is printed separately); wall and process CPU time
+are both given where the machine may be shared. The full comparisons with peers (Embree,
+networkx) are the scripts in benchmarks/ of the repository.
+"""
+
+
+def _add_triplet_options(parser: argparse.ArgumentParser, scales: int, k: int) -> None:
+    group = parser.add_argument_group("localization settings")
+    group.add_argument(
+        "--scales",
+        type=int,
+        choices=(1, 2, 3),
+        default=scales,
+        help=f"M2Loc descriptor scales: [0,20], (20,30], (30,40] m (default {scales})",
+    )
+    group.add_argument(
+        "--tripletloc",
+        action="store_true",
+        help="use TripletLoc's one-scale descriptor (edge lengths) instead of M2Loc's",
+    )
+    group.add_argument(
+        "-k", type=int, default=k, help=f"map matches per scan instance and scale (default {k})"
+    )
+    group.add_argument(
+        "--threshold",
+        type=float,
+        default=1.0,
+        help="consistency threshold of the match graph, metres (default 1.0)",
+    )
+    group.add_argument(
+        "--min-clique",
+        type=int,
+        default=10,
+        help="add scales while the clique is smaller than this (M2Loc's T, default 10)",
+    )
+    group.add_argument("--no-rsn", action="store_true", help="ignore the road-normal prior")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``jaxloc`` command (subcommands demo, localize-lidar, bench)."""
+    parser = argparse.ArgumentParser(
+        prog="jaxloc",
+        description="Differentiable global localization against compact maps.",
+        epilog=_MAIN_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    commands = parser.add_subparsers(
+        dest="command", required=True, metavar="COMMAND", help="what to run (COMMAND --help)"
+    )
+    demo = commands.add_parser(
+        "demo",
+        help="localize a camera in an embedded synthetic room (no downloads)",
+        description="Builds a synthetic room and a query sequence, renders a few views, runs the "
+        "coarse-to-fine SG2Loc particle filter with a progress bar, prints per-frame errors and "
+        "writes a figure of the particles per round and frame.",
+        epilog="examples:\n  jaxloc demo\n  jaxloc demo --seed 3 --frames 10 --out demo.png",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    demo.add_argument("--seed", type=int, default=1, help="room and sequence seed (default 1)")
+    demo.add_argument("--frames", type=int, default=6, help="frames in the sequence (default 6)")
+    demo.add_argument(
+        "--particles", type=int, default=1000, help="particle capacity (default 1000)"
+    )
+    demo.add_argument("--width", type=int, default=160, help="image width, pixels (default 160)")
+    demo.add_argument("--height", type=int, default=90, help="image height, pixels (default 90)")
+    demo.add_argument("--out", type=Path, default=Path("jaxloc_demo.png"), help="figure path (PNG)")
+
+    lidar = commands.add_parser(
+        "localize-lidar",
+        help="localize LiDAR scans in an instance map (M2Loc): pose and metrics per scan",
+        description=_LIDAR_DESCRIPTION,
+        epilog=_LIDAR_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    lidar.add_argument("map_dir", type=Path, metavar="MAP_DIR", help="instance map folder")
+    lidar.add_argument("scans", type=Path, nargs="+", metavar="SCAN", help="scan file(s)")
+    lidar.add_argument("--gt", type=Path, help="ground-truth poses, one per scan (see below)")
+    lidar.add_argument("--json", action="store_true", help="print one JSON document instead")
+    lidar.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_triplet_options(lidar, scales=3, k=25)
+
+    bench = commands.add_parser(
+        "bench",
+        help="quick speed checks: raycast (rays/s), filter (s/frame), triplet (ms/query)",
+        description="Quick in-package benchmarks on synthetic data (no Embree, no downloads).",
+        epilog=_BENCH_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    kinds = bench.add_subparsers(
+        dest="bench", required=True, metavar="WHAT", help="what to time (WHAT --help: options)"
+    )
+    raycast = kinds.add_parser(
+        "raycast",
+        help="rays/s of render_batch in a synthetic room",
+        description="Times jax.jit(render_batch) on random poses in a synthetic room.",
+    )
+    raycast.add_argument("--poses", type=int, default=64, help="camera poses (default 64)")
+    raycast.add_argument("--width", type=int, default=480, help="image width (default 480)")
+    raycast.add_argument("--height", type=int, default=270, help="image height (default 270)")
+    raycast.add_argument("--stride", type=int, default=10, help="pixel stride (default 10)")
+    raycast.add_argument("--objects", type=int, default=20, help="furniture objects (default 20)")
+    raycast.add_argument(
+        "--vertices", type=int, default=600, help="vertices per object mesh (default 600)"
+    )
+    raycast.add_argument("--repeats", type=int, default=3, help="timed runs, best of (default 3)")
+    raycast.add_argument("--seed", type=int, default=0, help="room and pose seed (default 0)")
+
+    filter_ = kinds.add_parser(
+        "filter",
+        help="s/frame of the SG2Loc particle filter",
+        description="Times SG2Loc (one round: render, score, resample per frame) on the demo's "
+        "synthetic room, after compilation.",
+    )
+    filter_.add_argument("--particles", type=int, default=1000, help="capacity (default 1000)")
+    filter_.add_argument("--frames", type=int, default=3, help="frames timed (default 3)")
+    filter_.add_argument("--width", type=int, default=160, help="image width (default 160)")
+    filter_.add_argument("--height", type=int, default=90, help="image height (default 90)")
+    filter_.add_argument("--stride", type=int, default=8, help="pixel stride (default 8)")
+    filter_.add_argument("--seed", type=int, default=1, help="episode seed (default 1)")
+
+    triplet = kinds.add_parser(
+        "triplet",
+        help="ms/query of M2Loc on a synthetic world or a map folder",
+        description="Times localize_scan on seeded scan-like queries cut from the map "
+        "(jaxloc.datasets.outdoor.make_query), and reports the success rate.",
+    )
+    triplet.add_argument("--queries", type=int, default=20, help="queries (default 20)")
+    triplet.add_argument(
+        "--max-kept",
+        type=int,
+        default=24,
+        help="map instances kept per query (default 24: with the spurious ones at most 31, "
+        "so all queries share one compilation)",
+    )
+    triplet.add_argument("--map", type=Path, help="instance map folder (default: synthetic world)")
+    triplet.add_argument(
+        "--world", choices=("sparse", "dense"), default="dense", help="synthetic world kind"
+    )
+    triplet.add_argument("--blocks", type=int, default=2, help="synthetic world: blocks per side")
+    triplet.add_argument("--seed", type=int, default=0, help="world and query seed (default 0)")
+    _add_triplet_options(triplet, scales=1, k=25)
+    return parser
+
+
+_COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
+    "demo": run_demo,
+    "localize-lidar": run_localize_lidar,
+    "bench raycast": run_bench_raycast,
+    "bench filter": run_bench_filter,
+    "bench triplet": run_bench_triplet,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the ``jaxloc`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit code.
+
+    Usage errors (unknown options) exit through argparse with status 2.
+    """
+    args = build_parser().parse_args(argv)
+    name = args.command if args.command != "bench" else f"bench {args.bench}"
+    return run_guarded(name, lambda: _COMMANDS[name](args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

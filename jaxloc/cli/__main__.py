@@ -1,0 +1,7 @@
+"""``python -m jaxloc.cli``."""
+
+import sys
+
+from jaxloc.cli import main
+
+sys.exit(main())
