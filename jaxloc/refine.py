@@ -40,7 +40,22 @@ the frames' tilts. ``mode="last"`` uses the last frame alone.
 Status codes of :class:`RefineResult` (failures are values; the pose is then the initial pose):
 0 converged, 1 not converged (step budget or non-finite iterate), 2 non-finite or empty input
 (from :func:`~jaxloc.lsq.solve_pose`), 3 too few valid residuals at the initial pose,
-4 diverged (the solve moved farther than ``max_translation`` / ``max_rotation`` from the start).
+4 diverged (the solve moved farther than ``max_translation`` / ``max_rotation`` from the start),
+5 degenerate (the data leave the pose undetermined along some direction, see below).
+
+Degeneracy: a converged solve can still be wrong when the residuals do not constrain every degree
+of freedom (a view of one wall leaves the translation along the wall and the rotation about its
+normal free; a wall and the floor leave the translation along their intersection free), because
+the solver then slides along the free direction while every residual stays zero. At the final
+pose (and the last round's association) the Gauss-Newton information ``H = J^T W J`` of the
+noise-normalised residuals in the pose tangent (``J`` (K, 6), ``W`` the robust loss's IRLS
+weights) is the inverse covariance of the estimate under the configured noise model; the 1-sigma
+standard deviations along the worst translation and rotation directions are
+``sqrt(max eig [H^-1]_tt)`` (metres) and ``sqrt(max eig [H^-1]_rr)`` (radians) (marginal blocks,
+so a free direction that mixes translation and rotation shows in both). They are reported as
+``RefineResult.position_std`` / ``rotation_std``; above ``RefineConfig.max_position_std`` /
+``max_rotation_std`` the result is status 5, not ok. This flags free directions only: a
+well-constrained solve that converged to a wrong local minimum is not detected.
 """
 
 from __future__ import annotations
@@ -57,7 +72,7 @@ from jax import Array
 from jaxloc._raycast import raycast
 from jaxloc.camera import Camera, stride_grid
 from jaxloc.geometry import se3_to_yaw_pose, uncompose_yaw, yaw_pose_to_se3
-from jaxloc.lsq import RobustLoss, solve_pose
+from jaxloc.lsq import RobustLoss, robust_block_scale, solve_pose
 from jaxloc.scene import SceneGraph
 from jaxloc.sequence import Sequence
 
@@ -69,6 +84,7 @@ STATUS_NOT_CONVERGED = 1
 STATUS_BAD_INPUT = 2
 STATUS_TOO_FEW_RESIDUALS = 3
 STATUS_DIVERGED = 4
+STATUS_DEGENERATE = 5
 
 
 class RefineConfig(eqx.Module):
@@ -93,8 +109,16 @@ class RefineConfig(eqx.Module):
             status 3 (static).
         max_translation, max_rotation: a solve that moves the pose farther than this (metres,
             radians) is reported as diverged (status 4).
-        rounds: data-association rounds of the depth residuals (projective ICP; static).
-            Reprojection-only refinement needs no association and runs one round.
+        max_position_std, max_rotation_std: a converged solve whose 1-sigma pose uncertainty
+            along its worst direction exceeds this (metres, radians; module docstring) is reported
+            as degenerate (status 5).
+        rounds: data-association rounds of the depth residuals (projective ICP; static); each
+            restarts the solver from the last iterate. Reprojection-only refinement needs no
+            association and runs one round of ``rounds * max_steps`` steps (the same budget):
+            restarting Levenberg-Marquardt every ``max_steps`` resets its damping, and with the
+            Huber loss far outside its scale it needs more than 20 consecutive steps (measured:
+            8 rounds x 20 steps left the same starts unconverged as 1 x 20;
+            experiments/results/refine/convergence.md).
         max_steps: optimiser steps per round (static).
         method: "lm" (Levenberg-Marquardt) or "gn" (Gauss-Newton) (static).
     """
@@ -114,6 +138,8 @@ class RefineConfig(eqx.Module):
     min_matches: int = eqx.field(static=True, default=4)
     max_translation: float = 1.0
     max_rotation: float = 0.6
+    max_position_std: float = 0.05
+    max_rotation_std: float = 0.02
     rounds: int = eqx.field(static=True, default=8)
     max_steps: int = eqx.field(static=True, default=20)
     method: Literal["lm", "gn"] = eqx.field(static=True, default="lm")
@@ -131,7 +157,13 @@ class RefineConfig(eqx.Module):
             raise ValueError(f"depth_stride must be a positive int, got {self.depth_stride!r}")
         if self.method not in ("lm", "gn"):
             raise ValueError(f"method must be 'lm' or 'gn', got {self.method!r}")
-        for name in ("pixel_sigma", "max_translation", "max_rotation"):
+        for name in (
+            "pixel_sigma",
+            "max_translation",
+            "max_rotation",
+            "max_position_std",
+            "max_rotation_std",
+        ):
             value = getattr(self, name)
             if isinstance(value, float | int) and not value > 0:
                 raise ValueError(f"{name} must be > 0, got {value}")
@@ -179,12 +211,18 @@ class RefineResult(eqx.Module):
         yaw_pose: (4,) ``(x, y, z, yaw)`` of ``pose`` (pitch and roll dropped).
         frame_poses: ``T_world_cam`` of every frame (jaxlie.SE3 with a leading (F,) axis):
             ``pose @ T_rel[t]``, the frames placed through the ego-motion and tilts.
-        ok: bool scalar, the solve converged, enough residuals were valid and it did not diverge.
-        status: int32 scalar (module docstring: 0 converged ... 4 diverged).
+        ok: bool scalar, the solve converged, enough residuals were valid, it did not diverge and
+            the pose is determined (not degenerate).
+        status: int32 scalar: 0 converged, 1 not converged, 2 bad input, 3 too few residuals,
+            4 diverged, 5 degenerate (module docstring).
         steps: int32 scalar, optimiser steps.
         cost: float32 scalar, final robustified cost (``inf`` when not ``ok``).
         num_depth: int32 scalar, valid depth residuals at the initial pose (all frames).
         num_matches: int32 scalar, valid correspondences at the initial pose (all frames).
+        position_std: float32 scalar, 1-sigma position uncertainty (metres) of the solved pose
+            along its worst direction, from the Gauss-Newton information (module docstring);
+            ``inf`` where undetermined or non-finite.
+        rotation_std: float32 scalar, the same for the rotation (radians).
     """
 
     pose: jaxlie.SE3
@@ -196,6 +234,8 @@ class RefineResult(eqx.Module):
     cost: Array
     num_depth: Array
     num_matches: Array
+    position_std: Array
+    rotation_std: Array
 
 
 # ----------------------------------------------------------------------------- residual kernels
@@ -411,6 +451,39 @@ def _blocks(T_anchor, T_rel, camera, obs: Observations, planes: DepthPlanes, con
 # ----------------------------------------------------------------------------- the solve
 
 
+def _pose_std(blocks_fn, T: jaxlie.SE3, loss: RobustLoss) -> tuple[Array, Array]:
+    """Worst-direction 1-sigma position (metres) and rotation (radians) uncertainty at ``T``.
+
+    ``blocks_fn(T) -> (K, D)`` noise-normalised residual blocks (zero where masked). The
+    information ``H = J^T W J`` uses the tangent Jacobian ``J`` of ``T @ exp(delta)`` at
+    ``delta = 0`` (translation part in the camera frame: metres) and the robust loss's IRLS block
+    weights ``W``; the marginal covariance blocks of ``H^-1`` give the two numbers (``inf`` where
+    ``H`` is singular to float precision or non-finite).
+    """
+    T = jax.lax.stop_gradient(T)
+    blocks = blocks_fn(T)
+    jacobian = jax.jacfwd(lambda delta: blocks_fn(T @ jaxlie.SE3.exp(delta)))(
+        jnp.zeros(6, blocks.dtype)
+    )  # (K, D, 6)
+    weight = robust_block_scale(jnp.sum(blocks * blocks, axis=-1), loss) ** 2
+    jacobian = jnp.where(jnp.isfinite(jacobian), jacobian, 0.0).reshape(-1, blocks.shape[-1], 6)
+    information = jnp.einsum("k,kdi,kdj->ij", weight, jacobian, jacobian)
+    eigenvalues, vectors = jnp.linalg.eigh(information)
+    # Eigenvalues below float32 rounding of the largest carry no information.
+    floor = 1e-6 * jnp.maximum(eigenvalues[-1], 0.0)
+    determined = (eigenvalues > floor) & (eigenvalues > 0)
+    inverse = jnp.where(determined, 1.0 / jnp.where(determined, eigenvalues, 1.0), 0.0)
+    finite = jnp.all(jnp.isfinite(information))
+
+    def worst(rows: slice) -> Array:
+        part = vectors[rows]  # (3, 6): this block's share of each eigenvector
+        std = jnp.sqrt(jnp.maximum(jnp.linalg.eigvalsh((part * inverse) @ part.T)[-1], 0.0))
+        free = jnp.any(~determined & (jnp.linalg.norm(part, axis=0) > 1e-3))
+        return jnp.where(free | ~finite, jnp.inf, std)
+
+    return worst(slice(0, 3)), worst(slice(3, 6))
+
+
 def refine_pose(
     scene: SceneGraph,
     camera: Camera,
@@ -460,37 +533,51 @@ def refine_pose(
     def round_(carry, _):
         params, steps, input_ok = carry
         T = jaxlie.SE3(params)
+        planes = associate(T)
         solution = solve_pose(
             residual_fn,
             T,
-            associate(T),
+            planes,
             loss=config.loss,
-            max_steps=config.max_steps,
+            max_steps=steps_per_round,
             method=config.method,
         )
-        carry = (solution.pose.parameters(), steps + solution.steps, input_ok)
-        carry = (carry[0], carry[1], input_ok & (solution.status != STATUS_BAD_INPUT))
-        return carry, solution
+        carry = (
+            solution.pose.parameters(),
+            steps + solution.steps,
+            input_ok & (solution.status != STATUS_BAD_INPUT),
+        )
+        return carry, (solution, planes)
 
-    rounds = config.rounds if config.uses_depth else 1
-    (params, steps, input_ok), solutions = jax.lax.scan(
+    rounds, steps_per_round = config.rounds, config.max_steps
+    if not config.uses_depth:  # nothing to re-associate: one round, the same step budget
+        rounds, steps_per_round = 1, config.rounds * config.max_steps
+    (params, steps, input_ok), (solutions, round_planes) = jax.lax.scan(
         round_, (T_init.parameters(), jnp.int32(0), jnp.bool_(True)), None, length=rounds
     )
-    last = jax.tree.map(lambda a: a[-1], solutions)
+    last, last_planes = jax.tree.map(lambda a: a[-1], (solutions, round_planes))
+    position_std, rotation_std = _pose_std(
+        lambda T: residual_fn(T, last_planes), jaxlie.SE3(params), config.loss
+    )
     solved = last.ok & input_ok
     motion = T_init.inverse() @ jaxlie.SE3(params)
     moved = jnp.linalg.norm(motion.translation())
     turned = jnp.linalg.norm(motion.rotation().log())
     diverged = solved & ~((moved <= config.max_translation) & (turned <= config.max_rotation))
-    ok = solved & enough & ~diverged
-    status = jnp.where(
-        ~input_ok,
-        STATUS_BAD_INPUT,
-        jnp.where(
-            ~last.ok,
+    determined = (position_std <= config.max_position_std) & (
+        rotation_std <= config.max_rotation_std
+    )
+    ok = solved & enough & ~diverged & determined
+    status = jnp.select(
+        [~input_ok, ~last.ok, ~enough, diverged, ~determined],
+        [
+            STATUS_BAD_INPUT,
             last.status,
-            jnp.where(~enough, STATUS_TOO_FEW_RESIDUALS, jnp.where(diverged, STATUS_DIVERGED, 0)),
-        ),
+            STATUS_TOO_FEW_RESIDUALS,
+            STATUS_DIVERGED,
+            STATUS_DEGENERATE,
+        ],
+        STATUS_CONVERGED,
     ).astype(jnp.int32)
     identity = jnp.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], params.dtype)
     init_params = T_init.parameters()
@@ -506,6 +593,8 @@ def refine_pose(
         cost=jnp.where(ok, last.cost, jnp.inf),
         num_depth=num_depth,
         num_matches=num_matches,
+        position_std=position_std,
+        rotation_std=rotation_std,
     )
 
 

@@ -2,8 +2,12 @@
 degenerate inputs, convergence on noise-free frames, traces, bad input.
 
 The scene is the closed 6 x 4 x 3 m box room of conftest (analytic float64 raycasts in numpy) seen
-by a 160 x 90 camera tilted down towards a corner, so three orthogonal planes (two walls and the
+by an 80 x 45 camera tilted down towards a corner, so three orthogonal planes (two walls and the
 floor) fix all six degrees of freedom.
+
+Compile time dominates this file, so every single-frame depth solve goes through one jitted
+``SOLVE`` with one static configuration and one shape (its float settings are arrays, so changing
+them does not retrace); (b) has its own, and (c) is tested with the sequence mode (one compile).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from jaxloc.geometry import ego_motion, yaw_pose_to_se3
 from jaxloc.lsq import RobustLoss
 from jaxloc.refine import (
     STATUS_BAD_INPUT,
+    STATUS_DEGENERATE,
     STATUS_DIVERGED,
     STATUS_TOO_FEW_RESIDUALS,
     Observations,
@@ -33,11 +38,12 @@ from jaxloc.refine import (
     refine_pose,
     reprojection_residuals,
 )
+from jaxloc.refine import _pose_std as pose_std
 
-CAMERA = Camera.from_fov(160, 90, 60.0)
+CAMERA = Camera.from_fov(80, 45, 60.0)
 TILT = np.array([0.35, 0.05])
 POSE = np.array([1.6, 1.2, 1.5, np.arctan2(2.8, 4.4)])  # looks towards the corner (6, 4)
-STRIDE = 6
+STRIDE = 3
 #: Pixels whose ray passes this close (metres) to a second wall are skipped in exact comparisons.
 EDGE_GAP = 0.05
 
@@ -109,7 +115,7 @@ def matches(truth):
     """60 exact 2D-3D correspondences at the true pose (world points on the room's walls)."""
     R, origin, _ = truth
     rng = np.random.default_rng(3)
-    uv = np.stack([rng.uniform(0, 159, 60), rng.uniform(0, 89, 60)], -1)
+    uv = np.stack([rng.uniform(0, 79, 60), rng.uniform(0, 44, 60)], -1)
     d_world = numpy_rays(CAMERA, uv) @ R.T
     t, _, _ = room_hits(origin, d_world)
     return uv.astype(np.float32), (origin + t[:, None] * d_world).astype(np.float32)
@@ -246,13 +252,18 @@ def test_gradients_finite_at_degenerate_configurations(room, truth, matches):
     # Grazing: a camera 1 mm above the floor looking level along it; depth all invalid or all
     # valid; correspondences on the camera centre, behind it and NaN rows.
     grazing = yaw_pose_to_se3(jnp.array([1.0, 2.0, 0.001, 0.0]))
-    uv, depth = depth_samples(CAMERA, np.full((90, 160), 2.0, np.float32), STRIDE)
-    for pose, d in ((grazing, depth), (T, depth), (T, np.zeros_like(depth))):
-        grad = jax.jacfwd(
-            lambda delta, pose=pose, d=d: depth_residuals(
-                pose @ jaxlie.SE3.exp(delta), room, CAMERA, jnp.asarray(uv), jnp.asarray(d)
+    uv, depth = depth_samples(CAMERA, np.full((45, 80), 2.0, np.float32), STRIDE)
+
+    @jax.jit
+    def depth_jacobian(pose, d):
+        return jax.jacfwd(
+            lambda delta: depth_residuals(
+                pose @ jaxlie.SE3.exp(delta), room, CAMERA, jnp.asarray(uv), d
             )[0]
         )(jnp.zeros(6))
+
+    for pose, d in ((grazing, depth), (T, depth), (T, np.zeros_like(depth))):
+        grad = depth_jacobian(pose, jnp.asarray(d))
         assert np.all(np.isfinite(np.asarray(grad)))
     m_uv, points = matches
     points = points[:4].copy()
@@ -275,6 +286,26 @@ def test_gradients_finite_at_degenerate_configurations(room, truth, matches):
 # ----------------------------------------------------------------------------- the solve
 
 
+#: Traces of ``SOLVE`` (one expected for the whole file).
+TRACES: list[int] = []
+
+
+def _counted_refine_pose(*args):
+    TRACES.append(1)
+    return refine_pose(*args)
+
+
+SOLVE = eqx.filter_jit(_counted_refine_pose)
+#: The one static depth configuration of ``SOLVE``; floats as arrays so that variants share it.
+DEPTH_CONFIG = RefineConfig(
+    residuals="depth",
+    depth_stride=STRIDE,
+    max_translation=jnp.float32(1.0),
+    max_position_std=jnp.float32(0.05),
+)
+IDENTITY = jaxlie.SE3.identity((1,))
+
+
 def observations(uv, depth, m_uv=None, points=None) -> Observations:
     m_uv = np.zeros((0, 2), np.float32) if m_uv is None else m_uv
     points = np.zeros((0, 3), np.float32) if points is None else points
@@ -288,63 +319,104 @@ def observations(uv, depth, m_uv=None, points=None) -> Observations:
 
 
 def test_depth_refinement_converges_without_retracing(room, truth, depth_image):
-    """(a) from two 0.3 m / 10 deg perturbations; one trace for both frames."""
+    """(a) from two 0.3 m / 10 deg perturbations; one trace for both frames; the box-room view
+    constrains every direction, so it is not flagged as degenerate."""
     _, _, T_true = truth
-    traces = []
-
-    def counted(*args):
-        traces.append(1)
-        return refine_pose(*args)
-
-    solve = eqx.filter_jit(counted)
-    config = RefineConfig(residuals="depth", depth_stride=STRIDE)
     uv, depth = depth_samples(CAMERA, depth_image, STRIDE)
-    identity = jaxlie.SE3.identity((1,))
     results = []
     for seed in (0, 1):
         start = perturbed(T_true, seed)
-        result = solve(room, CAMERA, start, identity, observations(uv, depth), config)
+        result = SOLVE(room, CAMERA, start, IDENTITY, observations(uv, depth), DEPTH_CONFIG)
         pos, rot = errors(result.pose, T_true)
-        assert bool(result.ok) and int(result.status) == 0, (pos, rot)
+        assert bool(result.ok) and int(result.status) == 0, (pos, rot, int(result.status))
         assert pos < 0.02 and rot < 0.5, (seed, pos, rot)
+        assert 0 < float(result.position_std) < 0.05 and 0 < float(result.rotation_std) < 0.02
         results.append(result)
-    assert len(traces) == 1
-    again = solve(room, CAMERA, perturbed(T_true, 1), identity, observations(uv, depth), config)
+    again = SOLVE(
+        room, CAMERA, perturbed(T_true, 1), IDENTITY, observations(uv, depth), DEPTH_CONFIG
+    )
     np.testing.assert_array_equal(  # deterministic
         np.asarray(again.pose.parameters()), np.asarray(results[1].pose.parameters())
     )
+    assert len(TRACES) == 1
 
 
-@pytest.mark.parametrize("residuals", ["reprojection", "both"])
-def test_refinement_converges_with_correspondences(room, truth, depth_image, matches, residuals):
-    """(b) and (c) from a 0.3 m / 10 deg perturbation, exact correspondences."""
+def test_single_wall_view_is_flagged_degenerate(room):
+    """A camera 1 m from the wall x = 6, looking straight at it, sees nothing else: the depth
+    residuals leave the translation along the wall and the rotation about its normal free, so a
+    solve that fits the depth exactly is still reported as degenerate (status 5)."""
+    pose = np.array([5.0, 2.0, 1.5, 0.0])
+    R = numpy_rotation(pose[3], np.zeros(2))
+    depth_image = room_depth(R, pose[:3], CAMERA)
+    _, wall, _ = room_hits(pose[:3], numpy_rays(CAMERA, np.array([[0.0, 0.0], [79.0, 44.0]])) @ R.T)
+    assert np.all(wall == 3)  # the corner pixels see the wall x = 6 only
+    uv, depth = depth_samples(CAMERA, depth_image, STRIDE)
+    start = perturbed(se3(R, pose[:3]), 4, metres=0.05, degrees=2.0)
+    result = SOLVE(room, CAMERA, start, IDENTITY, observations(uv, depth), DEPTH_CONFIG)
+    assert not bool(result.ok) and int(result.status) == STATUS_DEGENERATE
+    assert not np.isfinite(float(result.position_std))
+    assert not np.isfinite(float(result.rotation_std))  # rotation about the wall normal is free
+    np.testing.assert_array_equal(  # failure: the start pose is returned
+        np.asarray(result.pose.parameters()), np.asarray(start.parameters())
+    )
+    assert len(TRACES) == 1
+
+
+def test_pose_std_matches_numpy(truth, matches):
+    """Worst-direction standard deviations vs a numpy covariance from finite differences, and a
+    residual function blind to the rotation: rotation free (inf), position determined."""
+    _, _, T = truth
+    uv, points = matches
+    valid = jnp.ones(len(uv), bool)
+
+    def blocks(pose):
+        return reprojection_residuals(pose, CAMERA, jnp.asarray(uv), jnp.asarray(points), valid)[0]
+
+    position_std, rotation_std = jax.jit(lambda p: pose_std(blocks, p, RobustLoss()))(T)
+    _, numeric = tangent_jacobian(lambda p: blocks(p).reshape(-1), T)
+    covariance = np.linalg.inv(numeric.T @ numeric)
+    np.testing.assert_allclose(
+        float(position_std), np.sqrt(np.linalg.eigvalsh(covariance[:3, :3])[-1]), rtol=2e-2
+    )
+    np.testing.assert_allclose(
+        float(rotation_std), np.sqrt(np.linalg.eigvalsh(covariance[3:, 3:])[-1]), rtol=2e-2
+    )
+
+    def position_only(pose):
+        return (pose.translation() - jnp.array([1.0, 2.0, 3.0]))[:, None] / 0.1
+
+    position_std, rotation_std = pose_std(position_only, T, RobustLoss())
+    np.testing.assert_allclose(float(position_std), 0.1, rtol=1e-3)
+    assert np.isinf(float(rotation_std))
+
+
+def test_reprojection_refinement_converges(room, truth, matches):
+    """(b) from a 0.3 m / 10 deg perturbation, exact correspondences."""
     _, _, T_true = truth
     uv, points = matches
-    config = RefineConfig(residuals=residuals, depth_stride=STRIDE, loss=RobustLoss("huber", 3.0))
+    config = RefineConfig(residuals="reprojection", loss=RobustLoss("huber", 3.0))
     result = refine_frame(
-        room,
-        CAMERA,
-        perturbed(T_true, 2),
-        config,
-        depth=depth_image,
-        match_uv=uv,
-        match_points=points,
+        room, CAMERA, perturbed(T_true, 2), config, match_uv=uv, match_points=points
     )
     pos, rot = errors(result.pose, T_true)
     assert bool(result.ok) and int(result.num_matches) == len(uv)
-    assert pos < 0.02 and rot < 0.5, (residuals, pos, rot)
+    assert pos < 0.02 and rot < 0.5, (pos, rot)
 
 
 def test_sequence_refinement_through_ego_motion(room):
-    """Three frames refined jointly from the 4-DoF start: every frame lands on its truth."""
+    """(c) depth + reprojection, three frames refined jointly from the 4-DoF start: every frame
+    lands on its truth."""
     poses = np.array([[1.2, 1.0, 1.5, 0.45], [1.4, 1.1, 1.5, 0.55], [1.6, 1.2, 1.5, 0.6]])
     tilts = np.array([[0.3, 0.0], [0.35, 0.05], [0.35, 0.05]])
-    depth = np.stack(
-        [
-            room_depth(numpy_rotation(p[3], s), p[:3], CAMERA)
-            for p, s in zip(poses, tilts, strict=True)
-        ]
-    )
+    rotations = [numpy_rotation(p[3], s) for p, s in zip(poses, tilts, strict=True)]
+    depth = np.stack([room_depth(R, p[:3], CAMERA) for R, p in zip(rotations, poses, strict=True)])
+    rng = np.random.default_rng(5)
+    match_uv = np.stack([rng.uniform(0, 79, (3, 20)), rng.uniform(0, 44, (3, 20))], -1)
+    match_points = []
+    for R, p, frame_uv in zip(rotations, poses, match_uv, strict=True):
+        d_world = numpy_rays(CAMERA, frame_uv) @ R.T
+        t, _, _ = room_hits(p[:3], d_world)
+        match_points.append(p[:3] + t[:, None] * d_world)
     motion = np.stack(
         [
             np.asarray(ego_motion(jnp.asarray(a), jnp.asarray(b)))
@@ -353,8 +425,16 @@ def test_sequence_refinement_through_ego_motion(room):
     )
     sequence = Sequence(CAMERA, np.ones((3, 9, 16, 8)), motion, depth=depth, tilt=tilts)
     start = poses[-1] + np.array([0.2, -0.15, 0.1, np.deg2rad(8.0)])
-    result = refine(room, sequence, start, RefineConfig(mode="sequence", depth_stride=8))
-    assert bool(result.ok)
+    config = RefineConfig(residuals="both", mode="sequence", depth_stride=4)
+    result = refine(
+        room,
+        sequence,
+        start,
+        config,
+        match_uv=match_uv.astype(np.float32),
+        match_points=np.stack(match_points).astype(np.float32),
+    )
+    assert bool(result.ok) and int(result.num_matches) == 60
     for t in range(3):
         T_true = se3(numpy_rotation(poses[t, 3], tilts[t]), poses[t, :3])
         pos, rot = errors(jaxlie.SE3(result.frame_poses.parameters()[t]), T_true)
@@ -364,10 +444,10 @@ def test_sequence_refinement_through_ego_motion(room):
 
 def test_failures_are_values(room, truth, depth_image):
     _, _, T_true = truth
-    config = RefineConfig(residuals="depth", depth_stride=STRIDE)
+    config = DEPTH_CONFIG
     uv, depth = depth_samples(CAMERA, depth_image, STRIDE)
-    identity = jaxlie.SE3.identity((1,))
-    solve = eqx.filter_jit(refine_pose)
+    identity = IDENTITY
+    solve = SOLVE
     start = perturbed(T_true, 0)
     cases = {
         STATUS_TOO_FEW_RESIDUALS: (
@@ -381,7 +461,7 @@ def test_failures_are_values(room, truth, depth_image):
         STATUS_BAD_INPUT: (
             room,
             CAMERA,
-            jaxlie.SE3(jnp.full(7, jnp.nan)),
+            jaxlie.SE3(jnp.full(7, jnp.nan, jnp.float32)),  # not weak-typed: no retrace
             identity,
             observations(uv, depth),
             config,
@@ -391,13 +471,18 @@ def test_failures_are_values(room, truth, depth_image):
         result = solve(*args)
         assert not bool(result.ok) and int(result.status) == status
         assert np.all(np.isfinite(np.asarray(result.pose.parameters())))
-    diverging = RefineConfig(residuals="depth", depth_stride=STRIDE, max_translation=0.01)
+    diverging = eqx.tree_at(lambda c: c.max_translation, config, jnp.float32(0.01))
     result = solve(room, CAMERA, start, identity, observations(uv, depth), diverging)
     assert not bool(result.ok) and int(result.status) == STATUS_DIVERGED
     np.testing.assert_array_equal(
         np.asarray(result.pose.parameters()), np.asarray(start.parameters())
     )
     assert np.isinf(float(result.cost))
+    # The box-room view is well determined, but not to 1 mm: a demanding threshold flags it.
+    strict = eqx.tree_at(lambda c: c.max_position_std, config, jnp.float32(1e-3))
+    result = solve(room, CAMERA, start, identity, observations(uv, depth), strict)
+    assert not bool(result.ok) and int(result.status) == STATUS_DEGENERATE
+    assert len(TRACES) == 1
 
 
 def test_bad_input_raises_clear_errors(room, truth, depth_image, matches):
