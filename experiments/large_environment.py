@@ -31,6 +31,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from _atomic import write_text_atomic
 
 from jaxloc.datasets import indoor
 from jaxloc.datasets._indoor_merge import merge_rooms
@@ -46,14 +47,6 @@ OUT = ROOT / "experiments" / "results" / "large_environment"
 ROOM = indoor.RoomConfig(vertex_range=(100, 150))
 EPISODE = indoor.EpisodeConfig(room=ROOM, sensor=indoor.SensorConfig(width=160, height=90))
 FIRST_SEED = 3000  # environment e, room r: seed FIRST_SEED + 10 e + r (tests use small seeds)
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
 
 
 def run(args, command: str) -> list[dict]:
@@ -181,7 +174,7 @@ def report(rows: list[dict], args, command: str) -> None:
             f"| {row['environment']} | {row['room']} | {row['seed']} | {row['setting']} "
             f"| {row['room_found']} | {row['pos_err_m']:.2f} | {row['rot_err_deg']:.1f} |"
         )
-    _write_atomic(OUT / "large_environment.md", "\n".join(lines) + "\n")
+    write_text_atomic(OUT / "large_environment.md", "\n".join(lines) + "\n")
     fd, tmp = tempfile.mkstemp(prefix="large_environment.csv.", suffix=".tmp", dir=OUT)
     with os.fdopen(fd, "w", newline="") as f:
         f.write(f"# {command}\n")

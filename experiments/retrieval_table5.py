@@ -40,6 +40,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from _atomic import write_text_atomic
 
 from jaxloc.datasets import indoor
 from jaxloc.retrieval import Gallery, recall_at_k, retrieve, true_rank
@@ -266,7 +267,7 @@ def write_results(rows, timings, pool: Gallery, args, command: str) -> None:
             )
         lines += ["", "R@1 vs sequence length: " + "; ".join(verdicts) + ".", ""]
     lines += ["## Exploratory runs (not reproduced by this command)", "", EXPLORATORY]
-    _write_text(OUT / "table5.md", "\n".join(lines) + "\n")
+    write_text_atomic(OUT / "table5.md", "\n".join(lines) + "\n")
     fd, tmp = tempfile.mkstemp(prefix="table5.csv.", suffix=".tmp", dir=OUT)
     with os.fdopen(fd, "w", newline="") as f:
         f.write(f"# {command}\n")
@@ -292,14 +293,6 @@ EXPLORATORY = (
     "more objects and classes can explain unrelated patches better, and summing frames "
     "compounds such a bias; not verified here)."
 )
-
-
-def _write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
 
 
 def main() -> None:
