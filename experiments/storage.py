@@ -4,7 +4,8 @@ For synthetic rooms (seeds not used in tests) this reports, per scene, the map c
 (:meth:`jaxloc.SceneGraph.storage_mb`: meshes, labels, embeddings, colours, edges), the size of the
 saved ``.npz`` file on disk (:func:`jaxloc.save_scene`, compressed), the embeddings alone (what
 retrieval needs, :meth:`jaxloc.retrieval.Gallery.storage_mb`), and the padded arrays a compiled
-filter holds in memory (BVH included). Pure host work, no rendering (about 90 CPU-seconds for 20 rooms).
+filter holds in memory (BVH included). Pure host work, no rendering (about 90 CPU-seconds for
+20 rooms).
 
     python experiments/storage.py --rooms 20
 """
