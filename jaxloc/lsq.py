@@ -15,9 +15,11 @@ tangent-space perturbation ``delta`` (6,) with ``T = T_init @ SE3.exp(delta)`` u
   weighted solves while its control parameter ``mu`` grows geometrically from the convex start to
   ``gnc_mu_final`` (a fixed count, so it jits; the weights of the last round are returned).
 
-Failures are values: ``PoseSolution.ok`` is False (and ``pose`` is ``T_init``, or the identity
-when ``T_init`` is itself non-finite) when the residuals or the result are non-finite or the solve
-did not converge. Nothing raises under jit.
+Failures are values: ``PoseSolution.ok`` is False when the residuals or the result are non-finite
+or the solve did not converge. A solve that ran out of steps returns its last finite iterate (as
+``scipy.optimize.least_squares`` does), so a caller that iterates (re-association rounds) keeps the
+progress; non-finite input or output returns ``T_init`` (the identity when ``T_init`` is itself
+non-finite). Nothing raises under jit.
 """
 
 from __future__ import annotations
@@ -64,14 +66,15 @@ class PoseSolution(eqx.Module):
     """Result of :func:`solve_pose` (a pytree; batch axes come from vmap).
 
     Attributes:
-        pose: the estimated pose (jaxlie.SE3), ``T_init`` when ``ok`` is False.
+        pose: the estimated pose (jaxlie.SE3): the last finite iterate (also when the step
+            budget ran out, status 1), ``T_init`` when the input or the result is non-finite.
         ok: bool scalar, True when the solve succeeded and everything is finite.
         status: int32 scalar: 0 converged (optimistix reported success, or a Gauss-Newton step
             from the result would gain less than 1e-5 of the cost: float32 stalls), 1 not
             converged (step budget, non-finite iterate), 2 non-finite or empty input.
         steps: int32 scalar, optimiser steps taken (summed over GNC rounds).
-        cost: float scalar, final ``0.5 * sum(robustified residuals^2)`` including the prior
-            (``inf`` when ``ok`` is False).
+        cost: float scalar, ``0.5 * sum(robustified residuals^2)`` including the prior at
+            ``pose`` (``inf`` when the input or the result is non-finite).
         weights: (M,) float, per-block weights of the last GNC round (1 for other losses, 0 where
             a block was non-finite).
     """
@@ -174,7 +177,8 @@ def solve_pose(
         method: "lm" (Levenberg-Marquardt) or "gn" (Gauss-Newton).
 
     Returns:
-        A :class:`PoseSolution`; on failure ``ok`` is False and ``pose`` is ``T_init``.
+        A :class:`PoseSolution`; on failure ``ok`` is False and ``pose`` is the last finite
+        iterate (``T_init`` if there is none).
     """
     loss = RobustLoss() if loss is None else loss
     solver = _make_solver(method, rtol, atol)
@@ -252,15 +256,16 @@ def solve_pose(
     final = robust_residuals(delta, weights)
     cost = 0.5 * jnp.sum(final * final)
     T = pose_of(delta)
-    ok = inputs_ok & success & jnp.isfinite(cost) & _finite_pose(T)
+    finite = inputs_ok & jnp.isfinite(cost) & _finite_pose(T)
+    ok = finite & success
     identity = jnp.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype)
     safe_init = jnp.where(_finite_pose(T_init), T_init.parameters(), identity)
-    pose = jaxlie.SE3(jnp.where(ok, T.parameters(), safe_init))
+    pose = jaxlie.SE3(jnp.where(finite, T.parameters(), safe_init))
     return PoseSolution(
         pose=pose,
         ok=ok,
         status=jnp.where(inputs_ok, status_code, 2).astype(jnp.int32),
         steps=jnp.asarray(steps, jnp.int32),
-        cost=jnp.where(ok, cost, jnp.inf),
-        weights=jnp.where(ok, weights, block_finite.astype(dtype)),
+        cost=jnp.where(finite, cost, jnp.inf),
+        weights=jnp.where(finite, weights, block_finite.astype(dtype)),
     )

@@ -8,7 +8,8 @@ sharded by XLA's sharding propagation. Three kinds of work split cleanly:
   :class:`~jaxloc.particles.ParticleState` along its capacity ``N`` (``N`` divisible by the device
   count); :func:`sharded_step` / :func:`sharded_run_pass` are :func:`jaxloc.filter.step` /
   :func:`jaxloc.filter.run_pass` with the state pinned to that sharding (the map, the frames and
-  the configuration are replicated). Rendering and scoring, the bulk of the work, are per particle
+  the configuration are replicated); :func:`jaxloc.sg2loc.localize` takes the same split with its
+  ``mesh=`` argument. Rendering and scoring, the bulk of the work, are per particle
   and run locally; the weight normalisation, the KLD bin count and resampling are global (XLA
   inserts the collectives).
 * **independent sequences** (sweeps over seeds, episodes or settings): :func:`sharded_run_passes`
@@ -81,7 +82,8 @@ def replicated_sharding(mesh: Mesh) -> NamedSharding:
     return NamedSharding(mesh, PartitionSpec())
 
 
-def _check_divisible(size: int, mesh: Mesh, what: str) -> None:
+def check_divisible(size: int, mesh: Mesh, what: str) -> None:
+    """Raise a ValueError naming ``what`` and the padded size if ``size`` does not split evenly."""
     count = mesh.devices.size
     if size % count:
         raise ValueError(
@@ -108,7 +110,7 @@ def shard_particles(state: ParticleState, mesh: Mesh) -> ParticleState:
     """
     if not isinstance(state, ParticleState):
         raise TypeError(f"state must be a ParticleState, got {type(state).__name__}")
-    _check_divisible(state.capacity, mesh, "the particle capacity")
+    check_divisible(state.capacity, mesh, "the particle capacity")
     return _place(state, split_sharding(mesh))
 
 
@@ -122,7 +124,7 @@ def shard_batch(tree, mesh: Mesh):
         if eqx.is_array(leaf):
             if leaf.ndim == 0:
                 raise ValueError("shard_batch needs a leading batch axis on every array")
-            _check_divisible(leaf.shape[0], mesh, "the batch size")
+            check_divisible(leaf.shape[0], mesh, "the batch size")
     return _place(tree, split_sharding(mesh))
 
 

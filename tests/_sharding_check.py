@@ -3,7 +3,8 @@
 ``XLA_FLAGS=--xla_force_host_platform_device_count=4`` must be set before jax is imported, so this
 script sets it itself and prints one JSON line of measured differences, which the test asserts on.
 Tiny sizes: the room of ``tests/_tiny_world.py`` (16 particles, 108 rays each, 4 frames) and a
-2-block sparse synthetic outdoor world with 3 queries and an empty scan (TripletLoc, top-5).
+2-block sparse synthetic outdoor world with 3 queries and an empty scan (TripletLoc, top-5); and
+``jaxloc.sg2loc.localize(..., mesh=)`` on a 3-frame sequence of the same room (one round).
 """
 
 from __future__ import annotations
@@ -23,8 +24,9 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxloc import sharding  # noqa: E402
+from jaxloc import sg2loc, sharding  # noqa: E402
 from jaxloc.datasets.outdoor import make_outdoor_world, make_query  # noqa: E402
+from jaxloc.resample import KLDConfig  # noqa: E402
 from jaxloc.triplet import build_map, localize_scan, tripletloc_config  # noqa: E402
 
 NUM_FRAMES = tiny.CHUNK
@@ -101,6 +103,26 @@ def particle_checks(mesh) -> dict:
     return out
 
 
+def localize_checks(mesh) -> dict:
+    """The user API: ``sg2loc.localize`` with and without ``mesh`` (one round, 3 frames)."""
+    scene = tiny.scene()
+    config = sg2loc.SG2LocConfig(
+        capacity=tiny.CAPACITY,
+        strides=(2,),
+        kld=KLDConfig(min_particles=4, max_particles=tiny.CAPACITY),
+    )
+    sequence = tiny.sequence(3)
+    key = jax.random.key(5)
+    alone = sg2loc.localize(key, scene, sequence, config)
+    split = sg2loc.localize(key, scene, sequence, config, mesh=mesh)
+    return {
+        "localize_counts_equal": bool(np.array_equal(alone.num_particles, split.num_particles)),
+        "localize_poses_diff": max_abs(alone.round_mle, split.round_mle),
+        "localize_particles_devices": len(split.particles.sharding.device_set),
+        "localize_nan": bool(np.any(np.isnan(np.asarray(split.poses)))),
+    }
+
+
 def query_checks(mesh) -> dict:
     world = make_outdoor_world("sparse", seed=3, blocks=2, bridge_length=100.0)
     config = tripletloc_config(
@@ -131,6 +153,8 @@ def main() -> None:
     start = time.perf_counter()
     result.update(particle_checks(mesh))
     result["particle_seconds"] = time.perf_counter() - start
+    result.update(localize_checks(mesh))
+    result["localize_seconds"] = time.perf_counter() - start - result["particle_seconds"]
     result.update(query_checks(mesh))
     result["total_seconds"] = time.perf_counter() - start
     print("RESULT " + json.dumps(result))

@@ -21,6 +21,7 @@ from jaxloc.particles import ParticleState, init_region
 from jaxloc.resample import KLDConfig
 from jaxloc.scene import SceneGraph
 from jaxloc.scores import ObservationConfig
+from jaxloc.sequence import Sequence
 
 CAPACITY = 16
 EMBEDDING_DIM = 8
@@ -117,3 +118,20 @@ def frames(num_frames: int, seed: int = 0, first_index: int = 0) -> Frame:
 def initial_state(scene_graph: SceneGraph, seed: int = 1) -> ParticleState:
     region = step_config(scene_graph).region
     return init_region(jax.random.key(seed), CAPACITY, region.lo, region.hi, region.floor_z)
+
+
+def sequence(num_frames: int, seed: int = 0) -> Sequence:
+    """A ``num_frames`` user-level :class:`~jaxloc.Sequence` on :func:`camera` (3x4 patches)."""
+    rng = np.random.default_rng(seed)
+    cam = camera()
+    h, w = cam.height, cam.width
+    embeddings = rng.normal(size=(num_frames, 3, 4, EMBEDDING_DIM))
+    depth = rng.uniform(0.5, 4.0, (num_frames, h, w))
+    depth[rng.random(depth.shape) < 0.1] = 0.0
+    return Sequence(
+        cam,
+        embeddings.astype(np.float32),
+        np.tile(np.float32([0.1, 0.0, 0.0, 0.05]), (num_frames - 1, 1)),
+        depth=depth.astype(np.float32),
+        rgb=rng.uniform(0, 1, (num_frames, h, w, 3)).astype(np.float32),
+    )

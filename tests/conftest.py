@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import functools
 import importlib.util
+import os
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -20,6 +22,20 @@ import trimesh
 
 from jaxloc import raycast, render, render_batch
 from jaxloc.scene import SceneGraph
+
+#: XLA's persistent compilation cache, shared by the pytest workers (xdist), the subprocesses the
+#: CLI, notebook and sharding tests start (they inherit the environment variable) and later runs.
+#: Programs are keyed by their HLO, jax version and backend, so a changed kernel never hits a stale
+#: entry; the cache only saves the recompilation of identical programs in another process.
+COMPILE_CACHE = Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax_compile"
+#: Every program is cached (the tiny test programs compile in well under jax's 1 s default).
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(COMPILE_CACHE))
+os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+jax.config.update(
+    "jax_persistent_cache_min_compile_time_secs",
+    float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]),
+)
 
 #: Number of rays of the standard random batch (one compiled shape for most raycast tests).
 NUM_RAYS = 2048

@@ -22,7 +22,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxloc import sharding
+from jaxloc import sg2loc, sharding
 from jaxloc.particles import ParticleState
 
 SCRIPT = Path(__file__).with_name("_sharding_check.py")
@@ -60,6 +60,14 @@ def test_sharded_particles_equal_the_single_device_pass(measured):
 def test_sharded_sequences_equal_each_sequence_alone(measured):
     assert measured["batch_counts_equal"]
     assert measured["batch_mle_diff"] <= 1e-5
+
+
+def test_localize_with_a_mesh_equals_one_device(measured):
+    # the user API unchanged but for ``mesh=``: same particle counts, same per-round MLE
+    assert measured["localize_counts_equal"]
+    assert not measured["localize_nan"]
+    assert measured["localize_poses_diff"] <= 1e-5
+    assert measured["localize_particles_devices"] == 4
 
 
 def test_sharded_queries_equal_localize_scan(measured):
@@ -104,6 +112,15 @@ def test_helpers_validate_their_arguments():
 def test_uneven_split_names_the_size_to_pad_to():
     four_devices = SimpleNamespace(devices=np.empty(4, object))  # only the size is read
     with pytest.raises(ValueError, match=r"capacity \(6\) must be a multiple of the mesh's 4"):
-        sharding._check_divisible(6, four_devices, "the particle capacity")
+        sharding.check_divisible(6, four_devices, "the particle capacity")
     with pytest.raises(ValueError, match="pad it up to 8"):
-        sharding._check_divisible(6, four_devices, "the batch size")
+        sharding.check_divisible(6, four_devices, "the batch size")
+
+
+def test_localize_rejects_a_capacity_that_does_not_split():
+    three_devices = SimpleNamespace(devices=np.empty(3, object))  # only the size is read
+    config = sg2loc.SG2LocConfig(capacity=tiny.CAPACITY, strides=(8,))
+    with pytest.raises(ValueError, match=r"SG2LocConfig.capacity \(16\) .* pad it up to 18"):
+        sg2loc.localize(
+            jax.random.key(0), tiny.scene(), tiny.sequence(2), config, mesh=three_devices
+        )
