@@ -13,7 +13,9 @@ tangent-space perturbation ``delta`` (6,) with ``T = T_init @ SE3.exp(delta)`` u
   and the gradient stay finite at ``s = 0``; GNC-TLS (graduated non-convexity with a truncated
   least-squares loss, Yang et al. 2020, as TripletLoc's GTSAM solver) runs a fixed number of
   weighted solves while its control parameter ``mu`` grows geometrically from the convex start to
-  ``gnc_mu_final`` (a fixed count, so it jits; the weights of the last round are returned).
+  ``gnc_mu_final`` (a fixed count, so it jits; the weights of the last round are returned). Once
+  the weights are all 0 or 1 and unchanged, every later round would repeat the same solve, so the
+  remaining rounds are skipped (``lax.cond``; a clean inlier set settles after one round).
 
 Failures are values: ``PoseSolution.ok`` is False when the residuals or the result are non-finite
 or the solve did not converge. A solve that ran out of steps returns its last finite iterate (as
@@ -240,16 +242,34 @@ def solve_pose(
         growth = (loss.gnc_mu_final / mu0) ** (1.0 / (loss.gnc_rounds - 1))
 
         def gnc_round(carry, _):
-            delta, mu, steps, success, weights = carry
-            sq = jnp.sum(jnp.where(block_finite[:, None], raw_blocks(delta), 0.0) ** 2, axis=-1)
-            weights = gnc_tls_weights(sq, mu, loss.scale) * block_finite
-            new_delta, new_success, new_steps = solve(delta, weights)
-            finite = jnp.all(jnp.isfinite(new_delta))
-            delta = jnp.where(finite, new_delta, delta)
-            return (delta, mu * growth, steps + new_steps, new_success & finite, weights), None
+            delta, mu, steps, success, weights, settled = carry
 
-        (delta, _, steps, success, weights), _ = jax.lax.scan(
-            gnc_round, (delta, mu0, steps, success, weights), None, length=loss.gnc_rounds
+            def run():
+                sq = jnp.sum(jnp.where(block_finite[:, None], raw_blocks(delta), 0.0) ** 2, axis=-1)
+                new_weights = gnc_tls_weights(sq, mu, loss.scale) * block_finite
+                new_delta, new_success, new_steps = solve(delta, new_weights)
+                finite = jnp.all(jnp.isfinite(new_delta))
+                # Binary weights that did not change give the same weighted problem, and a
+                # larger mu only narrows the band of fractional weights, so every later round
+                # would return this solution again: skip them.
+                binary = jnp.all((new_weights == 0.0) | (new_weights == 1.0))
+                now_settled = binary & jnp.all(new_weights == weights) & new_success & finite
+                return (
+                    jnp.where(finite, new_delta, delta),
+                    steps + new_steps,
+                    new_success & finite,
+                    new_weights,
+                    now_settled,
+                )
+
+            delta, steps, success, weights, settled = jax.lax.cond(
+                settled, lambda: (delta, steps, success, weights, settled), run
+            )
+            return (delta, mu * growth, steps, success, weights, settled), None
+
+        start = (delta, mu0, steps, success, weights, jnp.bool_(False))
+        (delta, _, steps, success, weights, _), _ = jax.lax.scan(
+            gnc_round, start, None, length=loss.gnc_rounds
         )
         status_code = jnp.where(success, 0, 1).astype(jnp.int32)
 

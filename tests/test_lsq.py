@@ -59,6 +59,23 @@ def test_gnc_tls_exact_with_half_outliers_and_huber_beats_plain():
     assert tangent_error(huber.pose, T) < 0.5 * tangent_error(plain.pose, T)
 
 
+def test_gnc_skips_the_rounds_after_its_weights_settle():
+    # clean data: every weight is 1 from the first GNC round on, so rounds 2.. (each at least one
+    # optimiser step if run) are skipped: 10 rounds take exactly the steps of 2, same answer
+    source, target, T = make_problem(noise=0.01, seed=6)
+    plain = SOLVE(residuals, IDENTITY, (source, target), loss=RobustLoss("none"))
+    tls = SOLVE(residuals, IDENTITY, (source, target), loss=RobustLoss("gnc_tls", 1.0))
+    two = SOLVE(residuals, IDENTITY, (source, target), loss=RobustLoss("gnc_tls", 1.0, 2))
+    assert bool(tls.ok) and np.all(np.asarray(tls.weights) == 1.0)
+    assert int(tls.steps) == int(two.steps) > int(plain.steps)
+    np.testing.assert_array_equal(
+        np.asarray(tls.pose.parameters()), np.asarray(two.pose.parameters())
+    )
+    np.testing.assert_allclose(
+        np.asarray(tls.pose.parameters()), np.asarray(plain.pose.parameters()), atol=1e-5
+    )
+
+
 def test_jit_equals_eager_and_deterministic():
     source, target, _ = make_problem(outlier_fraction=0.2, noise=0.05, seed=2)
     loss = RobustLoss("cauchy", 1.0)
