@@ -28,7 +28,7 @@ from jaxloc.resample import KLDConfig
 from jaxloc.scene import SceneGraph
 from jaxloc.scores import ObservationConfig
 from jaxloc.sequence import Sequence
-from jaxloc.sharding import check_divisible, split_sharding
+from jaxloc.sharding import check_divisible, pin_split
 
 
 class SG2LocConfig(eqx.Module):
@@ -116,12 +116,7 @@ def _initial_state(key, init_args, step_config: StepConfig, capacity: int, mesh:
     else:
         centre, half_width, yaw_half_range = init_args
         state = init_box(key, capacity, centre, jnp.full((3,), half_width), yaw_half_range)
-    return state if mesh is None else _pin(state, mesh)
-
-
-def _pin(tree, mesh: Mesh):
-    """Particle slots split over ``mesh`` (XLA propagates the split through the step)."""
-    return jax.lax.with_sharding_constraint(tree, split_sharding(mesh))
+    return state if mesh is None else pin_split(state, mesh)
 
 
 @eqx.filter_jit
@@ -137,7 +132,7 @@ _jit_initial_state = eqx.filter_jit(_initial_state)
 @eqx.filter_jit
 def _jit_step(key, state, frame, scene, step_config, mesh: Mesh | None):
     state, info = step(key, state, frame, scene, step_config)
-    return (state if mesh is None else _pin(state, mesh)), info
+    return (state if mesh is None else pin_split(state, mesh)), info
 
 
 def _round_with_progress(key, init_args, frames, scene, step_config, capacity, mesh, bar):

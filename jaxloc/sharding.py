@@ -128,8 +128,9 @@ def shard_batch(tree, mesh: Mesh):
     return _place(tree, split_sharding(mesh))
 
 
-def _pin(state: ParticleState, mesh: Mesh) -> ParticleState:
-    return jax.lax.with_sharding_constraint(state, split_sharding(mesh))
+def pin_split(tree, mesh: Mesh):
+    """Inside a traced function: keep every array of ``tree`` split along its leading axis."""
+    return jax.lax.with_sharding_constraint(tree, split_sharding(mesh))
 
 
 @eqx.filter_jit
@@ -146,8 +147,8 @@ def sharded_step(
     Pass a state from :func:`shard_particles`; ``frame``, ``scene`` and ``config`` may be host
     arrays or :func:`replicate` d ones.
     """
-    state, info = step(key, _pin(state, mesh), frame, scene, config)
-    return _pin(state, mesh), info
+    state, info = step(key, pin_split(state, mesh), frame, scene, config)
+    return pin_split(state, mesh), info
 
 
 @eqx.filter_jit
@@ -161,8 +162,8 @@ def sharded_run_pass(
 ) -> tuple[ParticleState, StepInfo]:
     """:func:`jaxloc.filter.run_pass` (``lax.scan`` over T frames) with the particles split over
     ``mesh``; same keys, same result as the single-device pass (see the module docstring)."""
-    state, info = run_pass(key, _pin(state, mesh), frames, scene, config)
-    return _pin(state, mesh), info
+    state, info = run_pass(key, pin_split(state, mesh), frames, scene, config)
+    return pin_split(state, mesh), info
 
 
 @eqx.filter_jit
@@ -184,10 +185,9 @@ def sharded_run_passes(
     Returns:
         Final states (B, ...) and per-frame infos (B, T, ...), split over ``mesh``.
     """
-    batch = split_sharding(mesh)
-    keys, states, frames = jax.lax.with_sharding_constraint((keys, states, frames), batch)
+    keys, states, frames = pin_split((keys, states, frames), mesh)
     out = jax.vmap(run_pass, in_axes=(0, 0, 0, None, None))(keys, states, frames, scene, config)
-    return jax.lax.with_sharding_constraint(out, batch)
+    return pin_split(out, mesh)
 
 
 def localize_scans(
