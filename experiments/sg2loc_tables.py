@@ -323,18 +323,16 @@ def report(args: argparse.Namespace, command: str) -> None:
         SCALE_NOTE,
     ]
     md.append("\n## Table 1/2 shape: full SG2Loc (semantic + depth + RGB, coarse-to-fine)\n")
-    md.append("Last frame of each sequence (the estimate after the whole sequence):\n")
-    md.append("| frames | scenes " + header)
-    md.append("|---" * (2 + 4 + len(RECALL_KEYS)) + "|")
-    for row in table:
-        if row["variant"] == "full":
-            md.append(f"| {row['frames']} | {row['scenes']} | {line(row, 'last')} |")
-    md.append("\nEvery frame of the final round (per-frame MLE), pooled:\n")
-    md.append("| frames | scenes " + header)
-    md.append("|---" * (2 + 4 + len(RECALL_KEYS)) + "|")
-    for row in table:
-        if row["variant"] == "full":
-            md.append(f"| {row['frames']} | {row['scenes']} | {line(row, 'all')} |")
+    for caption, which in (
+        ("Last frame of each sequence (the estimate after the whole sequence):\n", "last"),
+        ("\nEvery frame of the final round (per-frame MLE), pooled:\n", "all"),
+    ):
+        md.append(caption)
+        md.append("| frames | scenes " + header)
+        md.append("|---" * (2 + 4 + len(RECALL_KEYS)) + "|")
+        for row in table:
+            if row["variant"] == "full":
+                md.append(f"| {row['frames']} | {row['scenes']} | {line(row, which)} |")
     md.append("\n## Table 7 shape: ablations, 5-frame sequences, last frame\n")
     md.append("| variant | scenes " + header + " median s/frame (wall, shared CPU) |")
     md.append("|---" * (3 + 4 + len(RECALL_KEYS)) + "|")
