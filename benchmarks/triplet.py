@@ -5,7 +5,10 @@ query descriptor time and the match + clique + pose time (median, p90, after com
 same consistency graphs, time networkx's exact maximum clique (``max_weight_clique``) and the host
 exact solver, and count how often the jitted ``max_clique`` reaches the exact size.
 
-    JAX_PLATFORMS=cpu python benchmarks/triplet.py --queries 30 [--maps KAIST04]
+    JAX_PLATFORMS=cpu python benchmarks/triplet.py --queries 30 [--maps KAIST04] [--stages]
+
+``--stages`` adds a per-stage profile of ``register_query`` (each stage jitted on its own, median
+ms over the queries): matching, consistency graph + clique, pose, and the whole jitted call.
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import argparse
 import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import networkx as nx
 import numpy as np
 
@@ -21,34 +26,40 @@ from jaxloc.datasets.outdoor import make_query
 from jaxloc.triplet import (
     build_map,
     consistency_graph,
+    describe_query,
     load_instance_map,
     load_road_normals,
     localize_scan,
+    match_descriptors,
     max_clique_exact,
     max_clique_with_info,
+    register,
+    register_query,
     tripletloc_config,
 )
+from jaxloc.triplet._clique import max_clique_symmetric
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "helipr_instance_maps"
 
 
-def graph_of(triplet_map, q, result_config):
-    """Rebuild the final consistency graph of a query (numpy) for the exact solvers."""
-    import jax.numpy as jnp
-
-    from jaxloc.triplet import describe_query, register_query
-
-    classes = result_config.descriptor.classes
+def padded_query(q, config):
+    """(points (C, 3) float32, class positions (C,) int32, mask (C,) bool) as localize_scan pads."""
+    classes = config.descriptor.classes
     cap = max(32, 1 << (len(q.points) - 1).bit_length())
     pts = np.zeros((cap, 3), np.float32)
     pts[: len(q.points)] = q.points
     cls = np.zeros(cap, np.int32)
     cls[: len(q.points)] = [classes.index(int(label)) for label in q.labels]
-    mask = np.arange(cap) < len(q.points)
+    return pts, cls, np.arange(cap) < len(q.points)
+
+
+def graph_of(triplet_map, q, result_config):
+    """Rebuild the final consistency graph of a query (numpy) for the exact solvers."""
+    pts, cls, mask = padded_query(q, result_config)
     d, v = describe_query(
         jnp.asarray(pts), jnp.asarray(cls), jnp.asarray(mask), result_config.descriptor
     )
-    out = register_query(triplet_map, jnp.asarray(pts), jnp.asarray(cls), d, v)
+    out = register_query(triplet_map, jnp.asarray(pts), jnp.asarray(cls), d, v, jnp.asarray(mask))
     valid = np.asarray(out.association_valid)
     qa, ma = np.asarray(out.association_query), np.maximum(np.asarray(out.association_map), 0)
     adjacency = np.asarray(
@@ -72,6 +83,7 @@ def main() -> None:
     parser.add_argument("--max-kept", type=int, default=40)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--maps", nargs="*", default=None, help="map names (default: all)")
+    parser.add_argument("--stages", action="store_true", help="also profile register_query")
     args = parser.parse_args()
     config = tripletloc_config()
     print(
@@ -83,11 +95,12 @@ def main() -> None:
     names = args.maps or sorted(p.name for p in DATA.iterdir())
     clique_args = dict(
         prefilter_size=config.clique_prefilter_size,
+        greedy_tiers=config.clique_greedy_tiers,
         compact_size=config.clique_compact_size,
         max_nodes=config.clique_max_nodes,
         num_seeds=config.clique_seeds,
     )
-    all_same, all_certified = [], []
+    all_same, all_certified, profiles = [], [], {}
     for name in names:
         instance_map = load_instance_map(DATA / name)
         normals = load_road_normals(DATA / name)
@@ -126,6 +139,8 @@ def main() -> None:
             certified.append(bool(exact))
         all_same += same
         all_certified += certified
+        if args.stages:
+            profiles[name] = stage_profile(triplet_map, queries, config, clique_args)
 
         def mp(values):
             return f"{np.median(values):.1f} / {np.percentile(values, 90):.1f}"
@@ -141,6 +156,59 @@ def main() -> None:
         f"({int(np.sum(all_same))}), certified on {np.mean(all_certified):.1%}; "
         "every answer a clique."
     )
+    if profiles:
+        stages = list(next(iter(profiles.values())))
+        print("\nStage profile of register_query, median ms over the queries:\n")
+        print("| map | " + " | ".join(stages) + " |")
+        print("|---|" + "---|" * len(stages))
+        for name, profile in profiles.items():
+            print(f"| {name} | " + " | ".join(f"{profile[s]:.1f}" for s in stages) + " |")
+
+
+def median_ms(fn, *args, repeats=3):
+    """Median over ``repeats`` calls (after one warm-up) of a jitted function, in ms."""
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(1e3 * (time.perf_counter() - start))
+    return float(np.median(times))
+
+
+def stage_profile(triplet_map, queries, config, clique_args):
+    """Median ms per stage of ``register_query`` over the queries (each stage jitted alone, at
+    the query's final scale)."""
+    match = jax.jit(
+        jax.vmap(match_descriptors, in_axes=(0, 0, None, 0, 0, None, None)), static_argnums=6
+    )
+
+    @jax.jit
+    def clique(query_xyz, map_xyz, valid):
+        adjacency = consistency_graph(query_xyz, map_xyz, valid, config.consistency_threshold)
+        return max_clique_symmetric(adjacency, valid, **clique_args)
+
+    @jax.jit
+    def pose(source, target, mask):
+        return register(source, target, mask, loss=config.loss, max_steps=config.solver_steps)
+
+    rows = {"matching": [], "graph + clique": [], "pose (no RSN prior)": [], "whole": []}
+    tm = triplet_map
+    for q in queries:
+        pts, cls, mask = (jnp.asarray(x) for x in padded_query(q, config))
+        d, v = describe_query(pts, cls, mask, config.descriptor)
+        out = register_query(tm, pts, cls, d, v, mask)
+        args = (d, v, cls, tm.descriptors, tm.valid, tm.classes, config.top_k)
+        rows["matching"].append(median_ms(match, *args))
+        used = out.association_valid
+        query_xyz = pts[out.association_query]
+        map_xyz = tm.points[jnp.maximum(out.association_map, 0)]
+        rows["graph + clique"].append(median_ms(clique, query_xyz, map_xyz, used))
+        _, chosen = jax.lax.top_k(out.clique.astype(jnp.float32), 2 * pts.shape[0])
+        pair_args = (query_xyz[chosen], map_xyz[chosen], out.clique[chosen])
+        rows["pose (no RSN prior)"].append(median_ms(pose, *pair_args))
+        rows["whole"].append(median_ms(register_query, tm, pts, cls, d, v, mask))
+    return {name: float(np.median(values)) for name, values in rows.items()}
 
 
 def is_clique(adjacency: np.ndarray, mask: np.ndarray) -> bool:

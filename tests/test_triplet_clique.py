@@ -93,3 +93,30 @@ def test_vmap_equals_loop():
     batched = jax.vmap(lambda g: max_clique(g))(graphs)
     for g, m in zip(graphs, np.asarray(batched), strict=True):
         np.testing.assert_array_equal(m, np.asarray(max_clique(g)))
+
+
+def test_clique_of_low_degree_vertices_hidden_by_dense_decoys():
+    """Real-map failure mode: outliers along a repetitive structure are mutually consistent and
+    outrank every member of the true clique by degree, so the prefilter holds no member."""
+    rng = np.random.default_rng(11)
+    n, decoys, planted = 640, 400, 9
+    a = np.zeros((n, n), bool)
+    a[:decoys, :decoys] = random_graph(rng, decoys, 0.1)
+    a[decoys:, decoys:] = random_graph(rng, n - decoys, 0.01)
+    members = rng.choice(np.arange(decoys, n), planted, replace=False)
+    a[np.ix_(members, members)] = True
+    np.fill_diagonal(a, False)
+    rank = np.argsort(np.argsort(-a.sum(axis=1)))
+    assert rank[members].min() >= 256  # the default prefilter_size keeps no member
+    mask, _ = max_clique_with_info(a)
+    mask = np.asarray(mask)
+    assert is_clique(a, mask)
+    assert mask.sum() == max_clique_exact(a).sum() == networkx_clique_size(a) == planted
+
+
+def test_bitset_capacities_must_be_multiples_of_32():
+    a = np.zeros((8, 8), bool)
+    with pytest.raises(ValueError, match="compact_size"):
+        max_clique_with_info(a, compact_size=100)
+    with pytest.raises(ValueError, match="greedy_tiers"):
+        max_clique_with_info(a, greedy_tiers=(256, 500))

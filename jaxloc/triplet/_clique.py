@@ -2,22 +2,27 @@
 
 :func:`max_clique` (pure JAX, static sizes) always returns a clique:
 
-0. prefilter: degrees of the whole graph (its only O(n^2) pass), then the ``prefilter_size``
-   vertices of highest degree form the working subgraph (a clique larger than a bound ``g`` only
-   uses vertices of degree ``>= g``, so nothing is lost while at most that many qualify);
-1. a lower bound from greedy expansions seeded at the highest-degree vertices in parallel (each
-   step adds the candidate of highest degree, candidates = common neighbours of the clique so far);
-2. peeling: a clique larger than the bound ``g`` only uses vertices with ``>= g`` neighbours inside
-   the remaining set, so vertices are removed until that holds (a while loop of mat-vecs);
-3. if anything survives, the survivors (the ``compact_size`` of highest degree) are packed into
-   bitsets and an exact Carraghan-Pardalos branch and bound (explicit stack in a while loop,
-   pruning when ``|R| + min(|candidates|, colours among the candidates) <= best`` with one greedy
-   colouring of the compact graph) searches for a clique larger than ``g``, within ``max_nodes``
-   expansions.
+0. the adjacency is packed into bitsets once (its only O(n^2) pass; popcounts give the degrees);
+1. a first lower bound ``g`` from greedy expansions seeded at the ``num_seeds`` highest-degree
+   vertices, inside the ``prefilter_size`` vertices of highest degree (each step adds the
+   candidate of highest degree; candidates = common neighbours of the clique so far);
+2. peeling on the whole graph: a clique larger than ``g`` only uses vertices with ``>= g``
+   neighbours inside the remaining set, so vertices are removed until that holds (bitset popcounts);
+3. while more than ``compact_size`` vertices survive, for each capacity of ``greedy_tiers``: a
+   greedy expansion from *every* survivor (the ``tier`` of highest degree among the survivors),
+   each step adding the candidate with the most neighbours among the candidates; a larger clique
+   raises ``g`` and the peeling runs again. This finds cliques whose members have low degree (on
+   real maps: the true associations, while outliers along a repetitive road side are mutually
+   consistent and have higher degrees), and it only runs when step 2 left too many survivors;
+4. if anything survives, the survivors (the ``compact_size`` of highest degree among them) go to
+   an exact Carraghan-Pardalos branch and bound (bitsets, explicit stack in a while loop, pruning
+   when ``|R| + min(|candidates|, colours among the candidates) <= best`` with one greedy
+   colouring of the compact graph) that searches for a clique larger than ``g`` within
+   ``max_nodes`` expansions.
 
-The answer is certified maximum (``exact = True``) when the prefilter kept every vertex of degree
-``>= g`` and either nothing survives the peeling, or the survivors fit the compact capacity and
-the search finished within its budget. A truncated run still returns the largest clique it found.
+The answer is certified maximum (``exact = True``) when nothing survives the peeling, or the
+survivors fit the compact capacity and the search finished within its budget. A truncated run
+still returns the largest clique it found.
 
 :func:`max_clique_exact` is a host-side exact solver (Tomita-style branch and bound with greedy
 colouring bounds) used to validate the jitted one.
@@ -35,6 +40,12 @@ from jax import Array
 _WORD = 32
 
 
+def _top_k(counts: Array, k: int) -> tuple[Array, Array]:
+    """``lax.top_k`` of int32 counts (< 2**24) ranked as float32, which XLA:CPU sorts several
+    times faster than int32 (ties keep the lower index first either way)."""
+    return jax.lax.top_k(counts.astype(jnp.float32), k)
+
+
 def _symmetric(adjacency: Array, valid: Array | None) -> tuple[Array, Array]:
     n = adjacency.shape[0]
     valid = jnp.ones(n, bool) if valid is None else jnp.asarray(valid, bool)
@@ -48,7 +59,7 @@ def _greedy_from_seeds(adjacency: Array, valid: Array, degree: Array, num_seeds:
     the candidate of highest degree)."""
     n = adjacency.shape[0]
     rows = jnp.arange(n)
-    _, seeds = jax.lax.top_k(jnp.where(valid, degree, -1), min(num_seeds, n))
+    _, seeds = _top_k(jnp.where(valid, degree, -1), min(num_seeds, n))
 
     def grow(seed):
         def cond(state):
@@ -67,18 +78,42 @@ def _greedy_from_seeds(adjacency: Array, valid: Array, degree: Array, num_seeds:
     return cliques[jnp.argmax(jnp.sum(cliques, axis=1))]
 
 
-def _peel(adjacency: Array, keep: Array, bound: Array) -> Array:
-    """Largest subset of ``keep`` where every vertex has >= ``bound`` neighbours in the subset."""
-    a = adjacency.astype(jnp.float32)
+def _peel(bits: Array, keep: Array, bound: Array) -> Array:
+    """Largest subset of ``keep`` (n,) bool where every vertex has >= ``bound`` neighbours in the
+    subset, for a packed adjacency ``bits`` (n, n // 32) uint32."""
 
     def body(state):
         keep, _ = state
-        inside = a @ keep.astype(jnp.float32)
+        inside = _popcount(bits & _pack(keep)[None, :])
         new_keep = keep & (inside >= bound)
         return new_keep, jnp.any(new_keep != keep)
 
     keep, _ = jax.lax.while_loop(lambda s: s[1], body, (keep, jnp.array(True)))
     return keep
+
+
+def _greedy_from_every_vertex(bits: Array, members: Array) -> Array:
+    """Best greedy clique (P,) bool of a packed (P, P // 32) graph, grown from every member in
+    parallel; each step adds the candidate with the most neighbours among the candidates."""
+    p = bits.shape[0]
+    rows = jnp.arange(p)
+
+    def grow(seed):
+        def cond(state):
+            return jnp.any(state[1] != 0)
+
+        def body(state):
+            clique, candidates = state
+            score = jnp.where(_unpack(candidates), _popcount(bits & candidates[None, :]), -1)
+            v = jnp.argmax(score)
+            return clique | (rows == v), candidates & bits[v]
+
+        start = (rows == seed) & members[seed], jnp.where(members[seed], bits[seed], 0)
+        clique, _ = jax.lax.while_loop(cond, body, start)
+        return clique
+
+    cliques = jax.vmap(grow)(rows)
+    return cliques[jnp.argmax(jnp.sum(cliques, axis=1))]
 
 
 def _pack(bits: Array) -> Array:
@@ -176,13 +211,15 @@ def _branch_and_bound(
     return best, best_size, depth < 0
 
 
-def _degree(adjacency: Array) -> Array:
-    """(n,) int32 degrees of a symmetric bool adjacency.
-
-    Summed over axis 0 (equal to axis 1 for a symmetric matrix): XLA:CPU reduces the leading axis
-    of a large matrix several times faster than the trailing one.
-    """
-    return jnp.sum(adjacency, axis=0, dtype=jnp.int32)
+def _top_subgraph(adjacency: Array, bits: Array, keep: Array, size: int):
+    """The ``size`` vertices of ``keep`` with most neighbours inside ``keep``, in ascending order
+    of that degree (Carraghan-Pardalos: branching on low-degree vertices first shrinks later
+    candidate sets): (indices (size,), member mask (size,), adjacency (size, size) bool)."""
+    inside = jnp.where(keep, _popcount(bits & _pack(keep)[None, :]), -1)
+    _, order = _top_k(inside, size)
+    order = order[::-1]
+    member = keep[order]
+    return order, member, adjacency[order][:, order] & member[:, None] & member[None, :]
 
 
 def max_clique_symmetric(
@@ -190,60 +227,80 @@ def max_clique_symmetric(
     valid: Array,
     *,
     prefilter_size: int = 256,
+    greedy_tiers: tuple[int, ...] = (256, 512),
     compact_size: int = 128,
     max_nodes: int = 50000,
     num_seeds: int = 64,
 ) -> tuple[Array, Array]:
     """:func:`max_clique_with_info` for an adjacency that is already symmetric, masked by
-    ``valid`` and False on the diagonal (e.g. from :func:`consistency_graph`); traceable.
-
-    The (n, n) graph is touched once (degrees); everything else runs on the ``prefilter_size``
-    vertices of highest degree: any clique larger than the greedy bound ``g`` only uses vertices
-    of degree ``>= g``, so the answer stays certified when at most ``prefilter_size`` of them exist.
-    """
+    ``valid`` and False on the diagonal (e.g. from :func:`consistency_graph`); traceable."""
     n = adjacency.shape[0]
-    degree = jnp.where(valid, _degree(adjacency), -1)
-    q = min(prefilter_size, n)
-    _, kept = jax.lax.top_k(degree, q)
-    kept_valid = degree[kept] >= 0
-    sub = adjacency[kept][:, kept] & kept_valid[:, None] & kept_valid[None, :]
-    sub_degree = degree[kept]
-    greedy = _greedy_from_seeds(sub, kept_valid, sub_degree, num_seeds)
-    greedy_size = jnp.sum(greedy).astype(jnp.int32)
-    bound = greedy_size.astype(jnp.float32)
-    survivors = _peel(sub, kept_valid & (sub_degree >= greedy_size), bound)
-    count = jnp.sum(survivors)
-    # every vertex that could join a larger clique is inside the prefiltered set
-    complete = jnp.sum(degree >= greedy_size) <= q
+    n_pad = -(-n // _WORD) * _WORD
+    a = jnp.pad(adjacency, ((0, n_pad - n), (0, n_pad - n)))
+    valid = jnp.pad(valid, (0, n_pad - n))
+    bits = _pack(a)
+    degree = jnp.where(valid, _popcount(bits), -1)
 
-    p = min(compact_size, -(-q // _WORD) * _WORD)
-    score = jnp.where(survivors, sub_degree, -1)
-    _, order = jax.lax.top_k(score, min(p, q))
-    # Branch on low-degree vertices first (bit order = ascending degree among the kept ones):
-    # removing them early shrinks later candidate sets (Carraghan-Pardalos ordering).
-    order = order[::-1]
-    order = jnp.concatenate([order, jnp.zeros(p - order.shape[0], order.dtype)])
-    in_compact = jnp.concatenate([survivors[order[: min(p, q)]], jnp.zeros(p - min(p, q), bool)])
-    compact = sub[order][:, order] & in_compact[:, None] & in_compact[None, :]
+    _, kept = _top_k(degree, min(prefilter_size, n_pad))
+    kept_valid = degree[kept] >= 0
+    sub = a[kept][:, kept] & kept_valid[:, None] & kept_valid[None, :]
+    seeded = _greedy_from_seeds(sub, kept_valid, degree[kept], num_seeds)
+    best = jnp.zeros(n_pad, bool).at[kept].max(seeded & kept_valid)
+    bound = jnp.sum(best).astype(jnp.int32)
+    survivors = _peel(bits, valid & (degree >= bound), bound)
+
+    def raise_bound(tier):
+        def run(state):
+            best, bound, survivors = state
+            order, member, tier_graph = _top_subgraph(a, bits, survivors, tier)
+            grown = _greedy_from_every_vertex(_pack(tier_graph), member) & member
+            size = jnp.sum(grown).astype(jnp.int32)
+            best = jnp.where(size > bound, jnp.zeros(n_pad, bool).at[order].max(grown), best)
+            bound = jnp.maximum(bound, size)
+            return best, bound, _peel(bits, survivors, bound)
+
+        return run
+
+    for tier in sorted({min(t, n_pad) for t in greedy_tiers}):
+        best, bound, survivors = jax.lax.cond(
+            jnp.sum(survivors) > compact_size,
+            raise_bound(tier),
+            lambda state: state,
+            (best, bound, survivors),
+        )
+
+    count = jnp.sum(survivors)
+    p = min(compact_size, n_pad)
+    order, in_compact, compact = _top_subgraph(a, bits, survivors, p)
     colour = _greedy_colouring(compact, in_compact)
     colour_bits = _pack(colour[None, :] == jnp.arange(p)[:, None])
     best_bits, best_size, finished = _branch_and_bound(
-        _pack(compact), _pack(in_compact), colour_bits, greedy_size, max_nodes
+        _pack(compact), _pack(in_compact), colour_bits, bound, max_nodes
     )
     found = _unpack(best_bits)[:p] & in_compact
-    improved = best_size > greedy_size
-    in_sub = jnp.where(improved, jnp.zeros(q, bool).at[order].max(found), greedy)
-    mask = jnp.zeros(n, bool).at[kept].max(in_sub & kept_valid)
-    exact = complete & ((count == 0) | ((count <= p) & finished))
-    return mask, exact
+    mask = jnp.where(best_size > bound, jnp.zeros(n_pad, bool).at[order].max(found), best)
+    exact = (count == 0) | ((count <= p) & finished)
+    return mask[:n], exact
 
 
-@partial(jax.jit, static_argnames=("prefilter_size", "compact_size", "max_nodes", "num_seeds"))
+def check_clique_sizes(compact_size: int, greedy_tiers: tuple[int, ...]) -> None:
+    """Raise ValueError unless the bitset capacities are positive multiples of 32."""
+    sizes = [("compact_size", compact_size)] + [("greedy_tiers", t) for t in greedy_tiers]
+    for name, size in sizes:
+        if size <= 0 or size % _WORD:
+            raise ValueError(f"{name} must hold positive multiples of {_WORD}, got {size}")
+
+
+_STATIC = ("prefilter_size", "greedy_tiers", "compact_size", "max_nodes", "num_seeds")
+
+
+@partial(jax.jit, static_argnames=_STATIC)
 def max_clique_with_info(
     adjacency: Array,
     valid: Array | None = None,
     *,
     prefilter_size: int = 256,
+    greedy_tiers: tuple[int, ...] = (256, 512),
     compact_size: int = 128,
     max_nodes: int = 50000,
     num_seeds: int = 64,
@@ -253,50 +310,37 @@ def max_clique_with_info(
     Args:
         adjacency: (n, n) bool, symmetric (the AND with its transpose is used; diagonal ignored).
         valid: (n,) bool vertex mask (padding False) or None for all.
-        prefilter_size: static number of highest-degree vertices searched (see
-            :func:`max_clique_symmetric`).
+        prefilter_size: static number of highest-degree vertices the first greedy bound searches.
+        greedy_tiers: static capacities (multiples of 32) of the greedy passes from every
+            survivor, run in turn while more than ``compact_size`` vertices survive the peeling.
         compact_size: static capacity of the exact stage (a multiple of 32).
         max_nodes: static budget of branch-and-bound expansions.
-        num_seeds: static number of greedy seeds (highest degree first).
+        num_seeds: static number of seeds of the first greedy bound (highest degree first).
 
     Returns:
         ``(mask (n,) bool, exact bool)``: the clique (always a clique; empty for an empty graph)
-        and whether it is certified maximum.
+        and whether it is certified maximum. The algorithm is in this module's docstring.
     """
-    if compact_size % _WORD:
-        raise ValueError(f"compact_size must be a multiple of {_WORD}, got {compact_size}")
+    check_clique_sizes(compact_size, greedy_tiers)
     a, valid = _symmetric(adjacency, valid)
     return max_clique_symmetric(
         a,
         valid,
         prefilter_size=prefilter_size,
+        greedy_tiers=greedy_tiers,
         compact_size=compact_size,
         max_nodes=max_nodes,
         num_seeds=num_seeds,
     )
 
 
-def max_clique(
-    adjacency: Array,
-    valid: Array | None = None,
-    *,
-    prefilter_size: int = 256,
-    compact_size: int = 128,
-    max_nodes: int = 50000,
-    num_seeds: int = 64,
-) -> Array:
+def max_clique(adjacency: Array, valid: Array | None = None, **options) -> Array:
     """Maximum clique mask (n,) bool of an (n, n) bool adjacency with an optional (n,) valid mask.
 
-    Jitted (see :func:`max_clique_with_info` for the algorithm and the certificate flag).
+    Jitted; ``options`` are those of :func:`max_clique_with_info` (which documents them and
+    returns the certificate flag too).
     """
-    return max_clique_with_info(
-        adjacency,
-        valid,
-        prefilter_size=prefilter_size,
-        compact_size=compact_size,
-        max_nodes=max_nodes,
-        num_seeds=num_seeds,
-    )[0]
+    return max_clique_with_info(adjacency, valid, **options)[0]
 
 
 def max_clique_exact(adjacency: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:

@@ -27,7 +27,7 @@ import numpy as np
 from jax import Array
 
 from jaxloc.lsq import RobustLoss
-from jaxloc.triplet._clique import max_clique_symmetric
+from jaxloc.triplet._clique import check_clique_sizes, max_clique_symmetric
 from jaxloc.triplet._descriptors import (
     DescriptorConfig,
     describe_map,
@@ -58,8 +58,8 @@ class TripletConfig(eqx.Module):
         use_rsn: use the road-surface-normal prior when the map has RSN cells.
         rot_delta_deg: added to an RSN cell's normal std (degrees) for the prior's sigma.
         query_capacity: static padded query size (None: next power of two >= 32).
-        clique_prefilter_size, clique_compact_size, clique_max_nodes, clique_seeds:
-            :func:`max_clique` parameters.
+        clique_prefilter_size, clique_greedy_tiers, clique_compact_size, clique_max_nodes,
+            clique_seeds: :func:`max_clique` parameters.
         solver_steps: optimiser steps per solve.
     """
 
@@ -75,6 +75,7 @@ class TripletConfig(eqx.Module):
     rot_delta_deg: float = eqx.field(static=True, default=1.0)
     query_capacity: int | None = eqx.field(static=True, default=None)
     clique_prefilter_size: int = eqx.field(static=True, default=256)
+    clique_greedy_tiers: tuple[int, ...] = eqx.field(static=True, default=(256, 512))
     clique_compact_size: int = eqx.field(static=True, default=128)
     clique_max_nodes: int = eqx.field(static=True, default=4000)
     clique_seeds: int = eqx.field(static=True, default=64)
@@ -87,6 +88,7 @@ class TripletConfig(eqx.Module):
             raise ValueError("consistency_threshold must be > 0")
         if not 0.0 <= self.min_inlier_fraction <= 1.0 or not self.verify_radius > 0:
             raise ValueError("min_inlier_fraction must be in [0, 1] and verify_radius > 0")
+        check_clique_sizes(self.clique_compact_size, self.clique_greedy_tiers)
 
 
 def tripletloc_config(**overrides) -> TripletConfig:
@@ -354,6 +356,7 @@ def register_query(
                 adjacency,
                 assoc_valid[:size],
                 prefilter_size=config.clique_prefilter_size,
+                greedy_tiers=config.clique_greedy_tiers,
                 compact_size=config.clique_compact_size,
                 max_nodes=config.clique_max_nodes,
                 num_seeds=config.clique_seeds,
@@ -388,7 +391,7 @@ def register_query(
         normal, sigma = triplet_map.rsn_normals[cell], triplet_map.rsn_sigma[cell]
     # The pose only needs the clique: compact it to a static 2 * Nq pairs (a clique rarely holds
     # more than one association per query vertex) so the solver sees small residual vectors.
-    _, chosen = jax.lax.top_k(clique.astype(jnp.int32), min(2 * nq, total))
+    _, chosen = jax.lax.top_k(clique.astype(jnp.float32), min(2 * nq, total))  # f32: fast on CPU
     solution, _ = register(
         query_xyz[chosen],
         map_xyz[chosen],
