@@ -219,6 +219,7 @@ def main() -> None:
                         success=bool(pos < 0.02 and rot < 0.5),
                         position_std_m=float(result.position_std),
                         rotation_std_deg=float(np.rad2deg(result.rotation_std)),
+                        inlier_fraction=float(result.inlier_fraction),
                     )
                 )
         write_convergence(conv_rows, command, args)
@@ -355,7 +356,9 @@ def write_convergence(rows, command, args) -> None:
         f"({args.matches}, no outliers). Success: < 0.02 m and < 0.5 deg. "
         "wrong_flagged: failures reported not ok (any status) / failures; right_flagged: "
         "successes reported not ok / successes. position_std_m, rotation_std_deg: the "
-        "refinement's worst-direction 1-sigma uncertainty (status 5 above 0.05 m / 1.15 deg).\n\n"
+        "refinement's worst-direction 1-sigma uncertainty (status 5 above 0.05 m / 1.15 deg). "
+        "inlier_fraction: valid residuals within 3 sigma at the solved pose, depth re-associated "
+        "there (status 6 below `RefineConfig.min_inlier_fraction`).\n\n"
         + markdown(summary)
         + "\n\n## Per run\n\n"
         + markdown(rows)

@@ -41,7 +41,8 @@ Status codes of :class:`RefineResult` (failures are values; the pose is then the
 0 converged, 1 not converged (step budget or non-finite iterate), 2 non-finite or empty input
 (from :func:`~jaxloc.lsq.solve_pose`), 3 too few valid residuals at the initial pose,
 4 diverged (the solve moved farther than ``max_translation`` / ``max_rotation`` from the start),
-5 degenerate (the data leave the pose undetermined along some direction, see below).
+5 degenerate (the data leave the pose undetermined along some direction, see below), 6 poor fit
+(the solved pose explains too few of the observations, see below).
 
 Degeneracy: a converged solve can still be wrong when the residuals do not constrain every degree
 of freedom (a view of one wall leaves the translation along the wall and the rotation about its
@@ -55,7 +56,14 @@ standard deviations along the worst translation and rotation directions are
 so a free direction that mixes translation and rotation shows in both). They are reported as
 ``RefineResult.position_std`` / ``rotation_std``; above ``RefineConfig.max_position_std`` /
 ``max_rotation_std`` the result is status 5, not ok. This flags free directions only: a
-well-constrained solve that converged to a wrong local minimum is not detected.
+well-constrained solve that converged to a wrong local minimum is not detected by it.
+
+Fit check: at the solved pose the depth pixels are associated afresh and
+``RefineResult.inlier_fraction`` is the fraction of the valid residual blocks within
+``inlier_threshold`` sigma. A wrong local minimum leaves many observations unexplained; below
+``RefineConfig.min_inlier_fraction`` the result is status 6, not ok (0, the default, disables the
+check: scene changes and occlusions also lower the fraction at the true pose, so the threshold is
+the user's call; ``experiments/results/refine/convergence.md`` has measured values).
 """
 
 from __future__ import annotations
@@ -88,6 +96,7 @@ __all__ = [
     "STATUS_DEGENERATE",
     "STATUS_DIVERGED",
     "STATUS_NOT_CONVERGED",
+    "STATUS_POOR_FIT",
     "STATUS_TOO_FEW_RESIDUALS",
     "DepthPlanes",
     "Observations",
@@ -114,6 +123,7 @@ STATUS_BAD_INPUT = 2
 STATUS_TOO_FEW_RESIDUALS = 3
 STATUS_DIVERGED = 4
 STATUS_DEGENERATE = 5
+STATUS_POOR_FIT = 6
 
 
 class RefineConfig(eqx.Module):
@@ -141,6 +151,11 @@ class RefineConfig(eqx.Module):
         max_position_std, max_rotation_std: a converged solve whose 1-sigma pose uncertainty
             along its worst direction exceeds this (metres, radians; module docstring) is reported
             as degenerate (status 5).
+        inlier_threshold: a residual block is an inlier of the final pose when its norm is at
+            most this (in units of sigma).
+        min_inlier_fraction: a converged, determined solve whose final pose explains less than
+            this fraction of the valid residuals (depth re-associated at the final pose) is
+            reported as a poor fit (status 6); 0 disables the check (module docstring).
         rounds: data-association rounds of the depth residuals (projective ICP; static); each
             restarts the solver from the last iterate. Reprojection-only refinement needs no
             association and runs one round of ``rounds * max_steps`` steps (the same budget):
@@ -169,6 +184,8 @@ class RefineConfig(eqx.Module):
     max_rotation: float = 0.6
     max_position_std: float = 0.05
     max_rotation_std: float = 0.02
+    inlier_threshold: float = 3.0
+    min_inlier_fraction: float = 0.0
     rounds: int = eqx.field(static=True, default=8)
     max_steps: int = eqx.field(static=True, default=20)
     method: Literal["lm", "gn"] = eqx.field(static=True, default="lm")
@@ -192,6 +209,7 @@ class RefineConfig(eqx.Module):
             "max_rotation",
             "max_position_std",
             "max_rotation_std",
+            "inlier_threshold",
         ):
             value = getattr(self, name)
             if isinstance(value, float | int) and not value > 0:
@@ -203,6 +221,9 @@ class RefineConfig(eqx.Module):
         abs_, rel = self.depth_sigma_abs, self.depth_sigma_rel
         if isinstance(abs_, float | int) and isinstance(rel, float | int) and abs_ + rel <= 0:
             raise ValueError("depth_sigma_abs + depth_sigma_rel must be > 0")
+        fraction = self.min_inlier_fraction
+        if isinstance(fraction, float | int) and not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"min_inlier_fraction must be in [0, 1], got {fraction}")
 
     @property
     def uses_depth(self) -> bool:
@@ -252,6 +273,9 @@ class RefineResult(eqx.Module):
             along its worst direction, from the Gauss-Newton information (module docstring);
             ``inf`` where undetermined or non-finite.
         rotation_std: float32 scalar, the same for the rotation (radians).
+        inlier_fraction: float32 scalar in [0, 1], the fraction of the valid residual blocks at
+            the solved pose (depth re-associated there) whose norm is at most
+            ``config.inlier_threshold`` sigma (0 when none is valid).
     """
 
     pose: jaxlie.SE3
@@ -265,6 +289,7 @@ class RefineResult(eqx.Module):
     num_matches: Array
     position_std: Array
     rotation_std: Array
+    inlier_fraction: Array
 
 
 def _frame_poses(T_anchor: jaxlie.SE3, T_rel: jaxlie.SE3) -> jaxlie.SE3:
@@ -290,7 +315,8 @@ def _associate_all(T_anchor, T_rel, scene, camera, obs: Observations, config) ->
 
 
 def _blocks(T_anchor, T_rel, camera, obs: Observations, planes: DepthPlanes, config):
-    """Normalised residual blocks (F * (N + M), 2) and valid counts (depth, matches).
+    """Normalised residual blocks (F * (N + M), 2), their validity (F * (N + M),) and the valid
+    counts (depth, matches).
 
     Depth residuals are divided by ``depth_sigma_abs + depth_sigma_rel * depth`` and padded to
     blocks ``(r, 0)``; reprojection residuals are divided by ``pixel_sigma``.
@@ -298,29 +324,38 @@ def _blocks(T_anchor, T_rel, camera, obs: Observations, planes: DepthPlanes, con
 
     def one(pose, depth, frame_planes, match_uv, match_points, match_valid):
         pose = jaxlie.SE3(pose)
-        blocks, num_depth, num_matches = [], jnp.int32(0), jnp.int32(0)
+        blocks, valid, num_depth, num_matches = [], [], jnp.int32(0), jnp.int32(0)
         if config.uses_depth:
             r, ok = point_to_plane(pose, camera, obs.depth_uv, depth, frame_planes)
             sigma = config.depth_sigma_abs + config.depth_sigma_rel * jnp.where(ok, depth, 0.0)
             r = r / jnp.where(ok, sigma, 1.0)
             blocks.append(jnp.stack([r, jnp.zeros_like(r)], axis=-1))
+            valid.append(ok)
             num_depth = jnp.sum(ok, dtype=jnp.int32)
         if config.uses_matches:
             r, ok = reprojection_residuals(
                 pose, camera, match_uv, match_points, match_valid, config.min_depth
             )
             blocks.append(r / config.pixel_sigma)
+            valid.append(ok)
             num_matches = jnp.sum(ok, dtype=jnp.int32)
-        return jnp.concatenate(blocks, axis=0), num_depth, num_matches
+        return jnp.concatenate(blocks), jnp.concatenate(valid), num_depth, num_matches
 
     poses = _frame_poses(T_anchor, T_rel)
-    blocks, num_depth, num_matches = jax.vmap(one)(
+    blocks, valid, num_depth, num_matches = jax.vmap(one)(
         poses.parameters(), obs.depth, planes, obs.match_uv, obs.match_points, obs.match_valid
     )
-    return blocks.reshape(-1, 2), jnp.sum(num_depth), jnp.sum(num_matches)
+    return blocks.reshape(-1, 2), valid.reshape(-1), jnp.sum(num_depth), jnp.sum(num_matches)
 
 
 # ----------------------------------------------------------------------------- the solve
+
+
+def _inlier_fraction(blocks_and_valid: tuple[Array, Array], threshold: Array) -> Array:
+    """Fraction of the valid (K,) residual blocks (K, 2) with norm <= ``threshold`` (0 if none)."""
+    blocks, valid = blocks_and_valid
+    inside = valid & (jnp.sum(blocks**2, axis=-1) <= threshold**2)
+    return jnp.sum(inside) / jnp.maximum(jnp.sum(valid), 1)
 
 
 def _pose_std(blocks_fn, T: jaxlie.SE3, loss: RobustLoss) -> tuple[Array, Array]:
@@ -395,7 +430,7 @@ def refine_pose(
         return _blocks(T, T_rel, camera, observations, planes, config)[0]
 
     planes0 = associate(T_init)
-    _, num_depth, num_matches = _blocks(T_init, T_rel, camera, observations, planes0, config)
+    _, _, num_depth, num_matches = _blocks(T_init, T_rel, camera, observations, planes0, config)
     enough = jnp.bool_(False)
     if config.uses_depth:
         enough = enough | (num_depth >= config.min_depth_pixels)
@@ -428,26 +463,33 @@ def refine_pose(
         round_, (T_init.parameters(), jnp.int32(0), jnp.bool_(True)), None, length=rounds
     )
     last, last_planes = jax.tree.map(lambda a: a[-1], (solutions, round_planes))
+    T_final = jaxlie.SE3(params)
     position_std, rotation_std = _pose_std(
-        lambda T: residual_fn(T, last_planes), jaxlie.SE3(params), config.loss
+        lambda T: residual_fn(T, last_planes), T_final, config.loss
     )
     solved = last.ok & input_ok
-    motion = T_init.inverse() @ jaxlie.SE3(params)
+    motion = T_init.inverse() @ T_final
     moved = jnp.linalg.norm(motion.translation())
     turned = jnp.linalg.norm(motion.rotation().log())
     diverged = solved & ~((moved <= config.max_translation) & (turned <= config.max_rotation))
     determined = (position_std <= config.max_position_std) & (
         rotation_std <= config.max_rotation_std
     )
-    ok = solved & enough & ~diverged & determined
+    inlier_fraction = _inlier_fraction(
+        _blocks(T_final, T_rel, camera, observations, associate(T_final), config)[:2],
+        config.inlier_threshold,
+    )
+    fits = inlier_fraction >= config.min_inlier_fraction
+    ok = solved & enough & ~diverged & determined & fits
     status = jnp.select(
-        [~input_ok, ~last.ok, ~enough, diverged, ~determined],
+        [~input_ok, ~last.ok, ~enough, diverged, ~determined, ~fits],
         [
             STATUS_BAD_INPUT,
             last.status,
             STATUS_TOO_FEW_RESIDUALS,
             STATUS_DIVERGED,
             STATUS_DEGENERATE,
+            STATUS_POOR_FIT,
         ],
         STATUS_CONVERGED,
     ).astype(jnp.int32)
@@ -467,6 +509,7 @@ def refine_pose(
         num_matches=num_matches,
         position_std=position_std,
         rotation_std=rotation_std,
+        inlier_fraction=inlier_fraction,
     )
 
 

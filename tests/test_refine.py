@@ -27,6 +27,7 @@ from jaxloc.refine import (
     STATUS_BAD_INPUT,
     STATUS_DEGENERATE,
     STATUS_DIVERGED,
+    STATUS_POOR_FIT,
     STATUS_TOO_FEW_RESIDUALS,
     Observations,
     RefineConfig,
@@ -302,6 +303,7 @@ DEPTH_CONFIG = RefineConfig(
     depth_stride=STRIDE,
     max_translation=jnp.float32(1.0),
     max_position_std=jnp.float32(0.05),
+    min_inlier_fraction=jnp.float32(0.0),
 )
 IDENTITY = jaxlie.SE3.identity((1,))
 
@@ -482,6 +484,27 @@ def test_failures_are_values(room, truth, depth_image):
     strict = eqx.tree_at(lambda c: c.max_position_std, config, jnp.float32(1e-3))
     result = solve(room, CAMERA, start, identity, observations(uv, depth), strict)
     assert not bool(result.ok) and int(result.status) == STATUS_DEGENERATE
+    assert len(TRACES) == 1
+
+
+def test_poor_fit_is_flagged(room, truth, depth_image):
+    """A phantom surface the map lacks (every fifth depth pixel at 0.8 of its depth) leaves a
+    fifth of the observations unexplained: status 6 when the fit check asks for more."""
+    _, _, T_true = truth
+    uv, depth = depth_samples(CAMERA, depth_image, STRIDE)
+    clean = SOLVE(room, CAMERA, T_true, IDENTITY, observations(uv, depth), DEPTH_CONFIG)
+    assert bool(clean.ok) and float(clean.inlier_fraction) > 0.95
+    phantom = observations(uv, np.where(np.arange(depth.size) % 5 == 0, 0.8 * depth, depth))
+    lenient = eqx.tree_at(lambda c: c.min_inlier_fraction, DEPTH_CONFIG, jnp.float32(0.5))
+    result = SOLVE(room, CAMERA, T_true, IDENTITY, phantom, lenient)
+    assert bool(result.ok), int(result.status)
+    assert 0.5 <= float(result.inlier_fraction) < 0.9
+    strict = eqx.tree_at(lambda c: c.min_inlier_fraction, DEPTH_CONFIG, jnp.float32(0.9))
+    result = SOLVE(room, CAMERA, T_true, IDENTITY, phantom, strict)
+    assert not bool(result.ok) and int(result.status) == STATUS_POOR_FIT
+    np.testing.assert_array_equal(
+        np.asarray(result.pose.parameters()), np.asarray(T_true.parameters())
+    )
     assert len(TRACES) == 1
 
 
