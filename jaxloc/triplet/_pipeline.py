@@ -317,15 +317,22 @@ def register_query(
     config = triplet_map.config
     num_scales, nq, _ = descriptors.shape
     k = config.top_k
-    match = jax.vmap(match_descriptors, in_axes=(0, 0, None, 0, 0, None, None))
-    map_index, _ = match(
-        descriptors,
-        descriptor_valid,
-        classes,
-        triplet_map.descriptors,
-        triplet_map.valid,
-        triplet_map.classes,
-        k,
+    # A Python loop over the (at most a few) scales, not vmap: XLA:CPU runs the batched
+    # (1, Nq, D) x (1, Nm, D) similarity ~2.7x slower than the plain matrix product
+    # (benchmarks/triplet.py --stages; 14.2 vs 5.2 ms on Town01).
+    map_index = jnp.stack(
+        [
+            match_descriptors(
+                descriptors[s],
+                descriptor_valid[s],
+                classes,
+                triplet_map.descriptors[s],
+                triplet_map.valid[s],
+                triplet_map.classes,
+                k,
+            )[0]
+            for s in range(num_scales)
+        ]
     )  # (S, Nq, k)
     duplicate = jnp.zeros(map_index.shape, bool)
     for s in range(1, num_scales):  # an association repeated from an earlier scale is dropped
