@@ -389,7 +389,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--report", action="store_true", help="only rebuild tables from the CSVs")
     parser.add_argument("--quick", action="store_true", help="tiny smoke run (2 scenes, tiny)")
     parser.add_argument("--scenes", type=int, default=20)
-    parser.add_argument("--long-scenes", type=int, default=3, help="scenes of phase C")
+    parser.add_argument("--long-scenes", type=int, default=20, help="scenes of phase C")
     parser.add_argument("--seed0", type=int, default=1000)
     parser.add_argument("--width", type=int, default=160)
     parser.add_argument("--height", type=int, default=90)
