@@ -7,7 +7,7 @@ sparse and dense world. Queries are cut from each map (``jaxloc.datasets.outdoor
 a pose on the road, vertices within 40-60 m, 50-80 % dropped, 0.2-0.5 m jitter, 10-30 % spurious,
 random SE(3)), seeded, the same queries for all rows.
 
-    JAX_PLATFORMS=cpu python experiments/m2loc_table1.py --queries 200 --seed 1000
+    JAX_PLATFORMS=cpu python experiments/m2loc_table1.py --queries 200 --seed 1000 [--max-kept 25]
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ def main() -> None:
     parser.add_argument(
         "--max-kept",
         type=int,
-        default=48,
+        default=25,
         help="cap on kept map vertices per query (real scans hold ~30)",
     )
     parser.add_argument("--seed", type=int, default=1000)
