@@ -78,13 +78,18 @@ def _greedy_from_seeds(adjacency: Array, valid: Array, degree: Array, num_seeds:
     return cliques[jnp.argmax(jnp.sum(cliques, axis=1))]
 
 
+def _inside_degree(bits: Array, keep: Array) -> Array:
+    """(n,) int32 neighbours of each vertex inside ``keep`` (n,) bool, for packed ``bits``."""
+    return _popcount(bits & _pack(keep)[None, :])
+
+
 def _peel(bits: Array, keep: Array, bound: Array) -> Array:
     """Largest subset of ``keep`` (n,) bool where every vertex has >= ``bound`` neighbours in the
     subset, for a packed adjacency ``bits`` (n, n // 32) uint32."""
 
     def body(state):
         keep, _ = state
-        inside = _popcount(bits & _pack(keep)[None, :])
+        inside = _inside_degree(bits, keep)
         new_keep = keep & (inside >= bound)
         return new_keep, jnp.any(new_keep != keep)
 
@@ -215,7 +220,7 @@ def _top_subgraph(adjacency: Array, bits: Array, keep: Array, size: int):
     """The ``size`` vertices of ``keep`` with most neighbours inside ``keep``, in ascending order
     of that degree (Carraghan-Pardalos: branching on low-degree vertices first shrinks later
     candidate sets): (indices (size,), member mask (size,), adjacency (size, size) bool)."""
-    inside = jnp.where(keep, _popcount(bits & _pack(keep)[None, :]), -1)
+    inside = jnp.where(keep, _inside_degree(bits, keep), -1)
     _, order = _top_k(inside, size)
     order = order[::-1]
     member = keep[order]
