@@ -229,49 +229,69 @@ def solve_pose(
         & (initial_blocks.shape[0] > 0)
     )
 
-    delta, success, steps = solve(delta0, weights)
-    status_code = jnp.where(success, 0, 1).astype(jnp.int32)
-    if loss.kind == "gnc_tls":
-        squared = jnp.sum(jnp.where(block_finite[:, None], raw_blocks(delta), 0.0) ** 2, axis=-1)
+    if loss.kind != "gnc_tls":
+        delta, success, steps = solve(delta0, weights)
+    else:
+        # Round 0 is the plain solve on the finite blocks; rounds 1.. are GNC-TLS with mu growing
+        # geometrically from the convex start (set by round 0's residuals) to gnc_mu_final. One
+        # scan with one solve call site: the optimiser is traced (and compiled) once, not twice.
         c2 = jnp.asarray(loss.scale, dtype) ** 2
-        max_sq = jnp.max(jnp.where(block_finite, squared, 0.0))
-        mu0 = jnp.where(
-            2.0 * max_sq > c2, c2 / jnp.maximum(2.0 * max_sq - c2, 1e-12), loss.gnc_mu_final
-        )
-        mu0 = jnp.clip(mu0, 1e-9, loss.gnc_mu_final)
-        growth = (loss.gnc_mu_final / mu0) ** (1.0 / (loss.gnc_rounds - 1))
+        mu_final = jnp.asarray(loss.gnc_mu_final, dtype)
 
-        def gnc_round(carry, _):
-            delta, mu, steps, success, weights, settled = carry
+        def convex_start(squared: Array) -> tuple[Array, Array]:
+            max_sq = jnp.max(jnp.where(block_finite, squared, 0.0))
+            mu0 = jnp.where(2.0 * max_sq > c2, c2 / jnp.maximum(2.0 * max_sq - c2, 1e-12), mu_final)
+            mu0 = jnp.clip(mu0, 1e-9, mu_final)
+            return mu0, (mu_final / mu0) ** (1.0 / (loss.gnc_rounds - 1))
+
+        def gnc_round(carry, index):
+            delta, mu, growth, steps, success, weights, settled = carry
 
             def run():
                 sq = jnp.sum(jnp.where(block_finite[:, None], raw_blocks(delta), 0.0) ** 2, axis=-1)
-                new_weights = gnc_tls_weights(sq, mu, loss.scale) * block_finite
+                mu0, growth0 = convex_start(sq)
+                first_gnc = index == 1
+                round_mu = jnp.where(first_gnc, mu0, mu)
+                round_growth = jnp.where(first_gnc, growth0, growth)
+                new_weights = jnp.where(
+                    index == 0, weights, gnc_tls_weights(sq, round_mu, loss.scale) * block_finite
+                )
                 new_delta, new_success, new_steps = solve(delta, new_weights)
                 finite = jnp.all(jnp.isfinite(new_delta))
                 # Binary weights that did not change give the same weighted problem, and a
                 # larger mu only narrows the band of fractional weights, so every later round
                 # would return this solution again: skip them.
                 binary = jnp.all((new_weights == 0.0) | (new_weights == 1.0))
-                now_settled = binary & jnp.all(new_weights == weights) & new_success & finite
+                now_settled = (
+                    (index > 0) & binary & jnp.all(new_weights == weights) & new_success & finite
+                )
+                keep = finite | (index == 0)  # round 0 reports its result as it is
                 return (
-                    jnp.where(finite, new_delta, delta),
+                    jnp.where(keep, new_delta, delta),
+                    round_mu * round_growth,
+                    round_growth,
                     steps + new_steps,
-                    new_success & finite,
+                    new_success & keep,
                     new_weights,
                     now_settled,
                 )
 
-            delta, steps, success, weights, settled = jax.lax.cond(
-                settled, lambda: (delta, steps, success, weights, settled), run
-            )
-            return (delta, mu * growth, steps, success, weights, settled), None
+            skip = lambda: (delta, mu, growth, steps, success, weights, settled)  # noqa: E731
+            return jax.lax.cond(settled, skip, run), None
 
-        start = (delta, mu0, steps, success, weights, jnp.bool_(False))
-        (delta, _, steps, success, weights, _), _ = jax.lax.scan(
-            gnc_round, start, None, length=loss.gnc_rounds
+        start = (
+            delta0,
+            jnp.ones((), dtype),
+            jnp.ones((), dtype),
+            jnp.int32(0),
+            jnp.bool_(False),
+            weights,
+            jnp.bool_(False),
         )
-        status_code = jnp.where(success, 0, 1).astype(jnp.int32)
+        (delta, _, _, steps, success, weights, _), _ = jax.lax.scan(
+            gnc_round, start, jnp.arange(loss.gnc_rounds + 1)
+        )
+    status_code = jnp.where(success, 0, 1).astype(jnp.int32)
 
     final = robust_residuals(delta, weights)
     cost = 0.5 * jnp.sum(final * final)

@@ -12,6 +12,8 @@ them does not retrace); (b) has its own, and (c) is tested with the sequence mod
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -34,6 +36,7 @@ from jaxloc.refine import (
     correspondences,
     depth_residuals,
     depth_samples,
+    frame_poses_from_last,
     refine,
     refine_frame,
     refine_pose,
@@ -343,6 +346,24 @@ def test_depth_refinement_converges_without_retracing(room, truth, depth_image):
     assert len(TRACES) == 1
 
 
+def test_rounds_after_the_pose_settles_are_skipped(room, truth, depth_image):
+    """Twice the association rounds give the same pose and the same step count: once a round no
+    longer moves the pose, the rest are skipped (each would otherwise add solver steps)."""
+    _, _, T_true = truth
+    uv, depth = depth_samples(CAMERA, depth_image, STRIDE)
+    start = perturbed(T_true, 0)
+    base = SOLVE(room, CAMERA, start, IDENTITY, observations(uv, depth), DEPTH_CONFIG)
+    doubled = dataclasses.replace(DEPTH_CONFIG, rounds=2 * DEPTH_CONFIG.rounds)
+    longer = eqx.filter_jit(refine_pose)(
+        room, CAMERA, start, IDENTITY, observations(uv, depth), doubled
+    )
+    assert bool(base.ok) and bool(longer.ok)
+    assert int(longer.steps) == int(base.steps) < DEPTH_CONFIG.rounds * DEPTH_CONFIG.max_steps
+    np.testing.assert_array_equal(
+        np.asarray(longer.pose.parameters()), np.asarray(base.pose.parameters())
+    )
+
+
 def test_single_wall_view_is_flagged_degenerate(room):
     """A camera 1 m from the wall x = 6, looking straight at it, sees nothing else: the depth
     residuals leave the translation along the wall and the rotation about its normal free, so a
@@ -362,6 +383,30 @@ def test_single_wall_view_is_flagged_degenerate(room):
         np.asarray(result.pose.parameters()), np.asarray(start.parameters())
     )
     assert len(TRACES) == 1
+
+
+def test_joint_frames_determine_what_the_last_view_leaves_free(room, truth, depth_image):
+    """The single-wall view above, refined jointly with an earlier frame that sees a corner
+    (``refine_frame(..., T_rel=)``, relative poses known): converges from 0.3 m / 10 deg."""
+    pose = np.array([5.0, 2.0, 1.5, 0.0])
+    T_last = se3(numpy_rotation(pose[3], np.zeros(2)), pose[:3])
+    _, _, T_first = truth  # looks towards the corner (6, 4)
+    depth = np.stack(
+        [depth_image, room_depth(np.asarray(T_last.rotation().as_matrix()), pose[:3], CAMERA)]
+    )
+    T_rel = jaxlie.SE3(jnp.stack([(T_last.inverse() @ T).parameters() for T in (T_first, T_last)]))
+    start = perturbed(T_last, 6)
+    uv, last_depth = depth_samples(CAMERA, depth[1], STRIDE)
+    alone = SOLVE(room, CAMERA, start, IDENTITY, observations(uv, last_depth), DEPTH_CONFIG)
+    assert not bool(alone.ok)  # the last frame alone: refused
+    config = RefineConfig(residuals="depth", depth_stride=STRIDE)
+    result = refine_frame(room, CAMERA, start, config, depth=depth, T_rel=T_rel)
+    pos, rot = errors(result.pose, T_last)
+    assert bool(result.ok) and int(result.status) == 0, int(result.status)
+    assert pos < 0.02 and rot < 0.5, (pos, rot)
+    assert float(result.position_std) < 0.05 and float(result.rotation_std) < 0.02
+    first, _ = errors(jaxlie.SE3(result.frame_poses.parameters()[0]), T_first)
+    assert first < 0.02
 
 
 def test_pose_std_matches_numpy(truth, matches):
@@ -442,6 +487,25 @@ def test_sequence_refinement_through_ego_motion(room):
         pos, rot = errors(jaxlie.SE3(result.frame_poses.parameters()[t]), T_true)
         assert pos < 0.02 and rot < 0.5, (t, pos, rot)
     np.testing.assert_allclose(np.asarray(result.yaw_pose), poses[-1], atol=0.02)
+    # the same solve from a full SE(3) start and the frames' relative poses (e.g. from VIO)
+    chain = frame_poses_from_last(jnp.asarray(start, jnp.float32), motion, tilts)
+    T_start = jaxlie.SE3(chain.parameters()[-1])
+    T_rel = jaxlie.SE3(
+        jax.vmap(lambda q: (T_start.inverse() @ jaxlie.SE3(q)).parameters())(chain.parameters())
+    )
+    joint = refine_frame(
+        room,
+        CAMERA,
+        T_start,
+        config,
+        depth=depth,
+        match_uv=match_uv,
+        match_points=np.stack(match_points),
+        T_rel=T_rel,
+    )
+    np.testing.assert_array_equal(
+        np.asarray(joint.pose.parameters()), np.asarray(result.pose.parameters())
+    )
 
 
 def test_failures_are_values(room, truth, depth_image):
@@ -525,6 +589,10 @@ def test_bad_input_raises_clear_errors(room, truth, depth_image, matches):
         refine_frame(room, CAMERA, T, RefineConfig(), depth=depth_image[:, :10])
     with pytest.raises(ValueError, match="needs match_uv"):
         refine_frame(room, CAMERA, T, RefineConfig(residuals="reprojection"))
+    with pytest.raises(ValueError, match=r"depth must have shape \(F, H, W\)"):
+        refine_frame(room, CAMERA, T, RefineConfig(), depth=depth_image, T_rel=IDENTITY)
+    with pytest.raises(ValueError, match="T_rel must be a finite"):
+        refine_frame(room, CAMERA, T, RefineConfig(), depth=depth_image[None], T_rel=T)
     with pytest.raises(ValueError, match="residuals must be"):
         RefineConfig(residuals="lidar")
     with pytest.raises(ValueError, match="yaw_pose"):
