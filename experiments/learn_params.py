@@ -79,7 +79,9 @@ def padded_scenes(episodes) -> list[SceneGraph]:
     ]
 
 
-def windows_of(key, episodes, scenes, starts, window_length, num_particles) -> learn.Windows:
+def windows_of(
+    key, episodes, scenes, starts, window_length, num_particles, half_width, yaw_half_range
+) -> learn.Windows:
     parts = []
     for i, (episode, scene) in enumerate(zip(episodes, scenes, strict=True)):
         for stride in STRIDES:
@@ -94,6 +96,8 @@ def windows_of(key, episodes, scenes, starts, window_length, num_particles) -> l
                     starts,
                     window_length,
                     num_particles,
+                    local_half_width=half_width,
+                    local_yaw_half_range=yaw_half_range,
                 )
             )
     return learn.concat_windows(parts)
@@ -111,10 +115,35 @@ def main() -> None:
     parser.add_argument("--heldout-scenes", type=int, default=5)
     parser.add_argument("--frames", type=int, default=8)
     parser.add_argument("--window", type=int, default=3)
-    parser.add_argument("--particles", type=int, default=128)
+    parser.add_argument("--particles", type=int, default=256)
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--capacity", type=int, default=400)
     parser.add_argument("--out", type=Path, default=OUT, help="results folder")
+    loss_default = learn.LossConfig()
+    parser.add_argument(
+        "--kernel-m",
+        type=float,
+        default=float(loss_default.position_scale),
+        help="loss kernel width in position (metres; default: the library's)",
+    )
+    parser.add_argument(
+        "--kernel-deg",
+        type=float,
+        default=float(np.rad2deg(loss_default.yaw_scale)),
+        help="loss kernel width in yaw (degrees; default: the library's)",
+    )
+    parser.add_argument(
+        "--box-m",
+        type=float,
+        default=learn.LOCAL_HALF_WIDTH,
+        help="half-width of the local particles' box (metres; default: the library's)",
+    )
+    parser.add_argument(
+        "--box-deg",
+        type=float,
+        default=float(np.rad2deg(learn.LOCAL_YAW_HALF_RANGE)),
+        help="yaw half-range of the local particles (degrees; default: the library's)",
+    )
     args = parser.parse_args()
     out = args.out
     command = "nice -n 5 .venv/bin/python experiments/learn_params.py " + " ".join(sys.argv[1:])
@@ -135,11 +164,18 @@ def main() -> None:
 
     t0 = time.time()
     key = jax.random.key(0)
+    box = (args.box_m, float(np.deg2rad(args.box_deg)))
     train_windows = windows_of(
-        jax.random.fold_in(key, 1), train_eps, train_scenes, starts, args.window, args.particles
+        jax.random.fold_in(key, 1),
+        train_eps,
+        train_scenes,
+        starts,
+        args.window,
+        args.particles,
+        *box,
     )
     held_windows = windows_of(
-        jax.random.fold_in(key, 2), held_eps, held_scenes, starts, args.window, args.particles
+        jax.random.fold_in(key, 2), held_eps, held_scenes, starts, args.window, args.particles, *box
     )
     log(
         f"windows: {train_windows.valid.shape[0]} train, {held_windows.valid.shape[0]} held-out "
@@ -158,7 +194,9 @@ def main() -> None:
             train_windows,
             held_windows,
             num_steps=args.steps,
-            loss=learn.LossConfig(kind=kind),
+            loss=learn.LossConfig(
+                kind=kind, position_scale=args.kernel_m, yaw_scale=np.deg2rad(args.kernel_deg)
+            ),
         )
         c = curves[kind]
         log(

@@ -110,7 +110,7 @@ def windows(scene, sequence) -> learn.Windows:
 
 
 #: The default LossConfig scales (metres, radians).
-SCALES = (0.25, float(np.deg2rad(10.0)))
+SCALES = (0.1, float(np.deg2rad(5.0)))
 
 
 def reference_loss(log_params, window: learn.Windows, kind: str, scales=SCALES):
