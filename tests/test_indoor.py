@@ -186,8 +186,8 @@ def test_episode_is_deterministic_for_a_seed(episode):
             getattr(again.sequence, name), getattr(episode.sequence, name)
         )
     np.testing.assert_array_equal(again.poses_gt, episode.poses_gt)
-    other = make_episode(8, 8, SMALL)
-    assert not np.allclose(other.poses_gt, episode.poses_gt)
+    other = make_episode(8, 2, SMALL)  # another seed, another room and path (2 frames suffice)
+    assert not np.allclose(other.poses_gt, episode.poses_gt[:2])
 
 
 def test_sequence_shapes(episode):

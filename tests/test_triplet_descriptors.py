@@ -11,6 +11,10 @@ from jaxloc.triplet import DescriptorConfig, describe_map, describe_points
 
 CLASSES = (15, 17, 18)
 
+#: The compiled descriptor (eager dispatch compiles every inner op apart, which is slow); the
+#: eager path is checked against the jitted, vmapped one in test_vmap_over_queries_equals_loop.
+DESCRIBE = jax.jit(describe_points, static_argnums=3)
+
 
 def reference(points, classes, config):
     """Loop over every vertex, scale and neighbour pair (TripletLoc's get_descriptor_fast)."""
@@ -74,7 +78,7 @@ def test_descriptors_match_brute_force_under_jit(config):
     points, classes = random_vertices(24, 0)
     mask = np.ones(24, bool)
     mask[-3:] = False  # padding
-    got, valid = jax.jit(describe_points, static_argnums=3)(points, classes, mask, config)
+    got, valid = DESCRIBE(points, classes, mask, config)
     ref, ref_valid = reference(points[:21].astype(np.float64), classes[:21], config)
     assert got.shape == (config.num_scales, 24, config.dim)
     np.testing.assert_array_equal(np.asarray(valid)[:, :21], ref_valid)
@@ -86,7 +90,7 @@ def test_tripletloc_dimension_and_invalid_vertices():
     config = DescriptorConfig()
     assert config.dim == 456
     points = np.array([[0, 0, 0], [1, 0, 0], [50, 0, 0], [51, 1, 0]], np.float32)
-    _, valid = describe_points(points, np.zeros(4, np.int32), np.ones(4, bool), config)
+    _, valid = DESCRIBE(points, np.zeros(4, np.int32), np.ones(4, bool), config)
     assert not np.asarray(valid).any()  # each vertex has only one neighbour within 20 m
 
 
@@ -98,19 +102,22 @@ def test_invariant_to_rigid_motion_about_z_and_permutation():
     moved = (points @ rot.T + np.array([100.0, -40.0, 3.0])).astype(np.float32)
     perm = np.random.default_rng(2).permutation(20)
     mask = np.ones(20, bool)
-    a, va = describe_points(points, classes, mask, config)
-    b, vb = describe_points(moved[perm], classes[perm], mask, config)
+    a, va = DESCRIBE(points, classes, mask, config)
+    b, vb = DESCRIBE(moved[perm], classes[perm], mask, config)
     np.testing.assert_array_equal(np.asarray(va)[:, perm], np.asarray(vb))
     np.testing.assert_allclose(np.asarray(a)[:, perm], np.asarray(b), atol=1e-5)
 
 
 def test_vmap_over_queries_equals_loop():
+    """The jitted vmap over queries equals an eager loop (so eager equals jit too)."""
     config = DescriptorConfig(CLASSES, (20.0,))
     batch = [random_vertices(16, seed) for seed in range(3)]
     points = np.stack([b[0] for b in batch])
     classes = np.stack([b[1] for b in batch])
     mask = np.ones((3, 16), bool)
-    batched, _ = jax.vmap(describe_points, in_axes=(0, 0, 0, None))(points, classes, mask, config)
+    batched, _ = jax.jit(jax.vmap(describe_points, in_axes=(0, 0, 0, None)), static_argnums=3)(
+        points, classes, mask, config
+    )
     for i in range(3):
         single, _ = describe_points(points[i], classes[i], mask[i], config)
         np.testing.assert_allclose(np.asarray(batched[i]), np.asarray(single), atol=1e-6)
@@ -119,7 +126,7 @@ def test_vmap_over_queries_equals_loop():
 def test_map_path_equals_points_path():
     config = DescriptorConfig(CLASSES, (10.0, 20.0), length_feature="ratio")
     points, classes = random_vertices(60, 3, extent=40.0)
-    dense, dense_valid = describe_points(points, classes, np.ones(60, bool), config)
+    dense, dense_valid = DESCRIBE(points, classes, np.ones(60, bool), config)
     sparse, sparse_valid = describe_map(
         points.astype(np.float64) + 500.0, classes, config, chunk=16
     )

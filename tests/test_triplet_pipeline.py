@@ -1,5 +1,6 @@
 """localize_scan end to end on a synthetic world; registration; no retrace; bad inputs."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -26,8 +27,11 @@ def world():
 
 @pytest.fixture(scope="module")
 def triplet_map(world):
+    # No road normals: the map then has the plain-arrays API's shapes, so every test here shares
+    # one compiled query pipeline (the RSN prior is exercised by tests/test_cli.py and the
+    # sharding check).
     config = m2loc_config(num_scales=2, scale_edges=(20.0, 30.0), query_capacity=64)
-    return build_map(world.points, world.labels, config, world.road_normals)
+    return build_map(world.points, world.labels, config)
 
 
 def random_transform(rng):
@@ -57,18 +61,22 @@ def test_weighted_kabsch_matches_numpy_svd():
     assert not bool(ok)
 
 
+#: One compiled registration for both calls below (eager dispatch compiles every inner op apart).
+REGISTER = jax.jit(register)
+
+
 def test_register_exact_and_robust_to_half_outliers():
     rng = np.random.default_rng(1)
     src = rng.uniform(-30, 30, (40, 3)).astype(np.float32)
     T = random_transform(rng)
     dst = (src @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
     mask = np.ones(40, bool)
-    sol, _ = register(src, dst, mask, loss=RobustLoss("gnc_tls", 1.0))
+    sol, _ = REGISTER(src, dst, mask, loss=RobustLoss("gnc_tls", 1.0))
     rte, rre = localization_errors(np.asarray(sol.pose.as_matrix()), T)
     assert bool(sol.ok) and rte < 1e-3 and rre < 1e-3
     dst_bad = dst.copy()
     dst_bad[::2] += rng.normal(0, 15, (20, 3)).astype(np.float32)
-    sol, _ = register(src, dst_bad, mask, loss=RobustLoss("gnc_tls", 1.0))
+    sol, _ = REGISTER(src, dst_bad, mask, loss=RobustLoss("gnc_tls", 1.0))
     rte, rre = localization_errors(np.asarray(sol.pose.as_matrix()), T)
     # Kabsch on 50 % outliers starts far off; GNC-TLS must still find the inlier pose
     assert bool(sol.ok) and rte < 1e-2 and rre < 1e-2

@@ -43,7 +43,9 @@ def run_demo(args: argparse.Namespace) -> int:
     camera = episode.sequence.camera
     grid = stride_grid(camera, 10, *episode.sequence.patch_shape)
     num_views = min(3, args.frames)
-    views = render_batch(scene, jax.numpy.asarray(episode.poses_gt[:num_views]), camera, grid)
+    views = jax.jit(render_batch)(
+        scene, jax.numpy.asarray(episode.poses_gt[:num_views]), camera, grid
+    )
     for t in range(num_views):
         seen = np.unique(np.asarray(views.object_id[t]))
         depth = np.asarray(views.depth[t])
