@@ -9,6 +9,12 @@
    (:func:`jaxloc.sg2loc.localize`) with the hand-set defaults (sigma 0.6, lambdas 2, 2) and
    with the learned ("nll") parameters, the same PRNG key for both.
 
+Variants: ``--windows filter`` trains on the filter's own particle sets instead
+(:func:`jaxloc.learn.filter_windows`, ``--iterations`` alternations of filter runs on the training
+episodes and fits); ``--loss-frames every`` scores every prefix of a window (``LossConfig.frames``);
+``--kernel-m/--kernel-deg/--box-m/--box-deg`` set the loss kernel and the local particles' box.
+The tables add a per-scene paired comparison and a bootstrap over scenes.
+
 Reduced, CPU-feasible scale (the machine is 2 shared cores): small coarse rooms (4-6 x 4-5 m,
 15-20 objects of 100-200 vertices), 160x90 images with the 9x16 patch grid, strides (10, 5)
 (the paper's 20, 8, 4 at 960x540 scaled to a 6x smaller image, two rounds), capacity 400.
@@ -19,6 +25,7 @@ Reduced, CPU-feasible scale (the machine is 2 shared cores): small coarse rooms 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -103,6 +110,83 @@ def windows_of(
     return learn.concat_windows(parts)
 
 
+def filter_config(args, observation: ObservationConfig) -> SG2LocConfig:
+    """The reduced-scale filter of this experiment (two rounds, capacity ``--capacity``)."""
+    return SG2LocConfig(
+        capacity=args.capacity, strides=STRIDES, box_half_widths=(0.8,), observation=observation
+    )
+
+
+def filter_windows_of(episodes, scenes, observation, args, seed0: int) -> learn.Windows:
+    """Run the filter with ``observation`` on every episode; its particle sets as windows."""
+    parts = []
+    for i, (episode, scene) in enumerate(zip(episodes, scenes, strict=True)):
+        result = localize(
+            jax.random.key(seed0 + i), scene, episode.sequence, filter_config(args, observation)
+        )
+        used = dataclasses.replace(
+            observation, use_depth=result.used_depth, use_color=result.used_color
+        )
+        parts.append(
+            learn.filter_windows(
+                scene,
+                episode.sequence,
+                episode.poses_gt,
+                result.particles,
+                result.particle_weights,
+                STRIDES,
+                used,
+            )
+        )
+    return learn.concat_windows(parts)
+
+
+def fit_on_filter_windows(
+    key, args, start, default, losses, train_eps, train_scenes, held_eps, held_scenes
+):
+    """Alternate filter runs and fits: iteration i runs the filter on the training episodes with
+    the current parameters, adds its particle sets to the training windows and continues Adam on
+    all of them. The held-out windows (learning curve only) are the hand-set filter's."""
+    t0 = time.time()
+    held_windows = filter_windows_of(held_eps, held_scenes, default, args, HELDOUT_SEED0)
+    log(f"held-out filter windows: {held_windows.valid.shape[0]} in {time.time() - t0:.0f} s")
+    learned, curves = {}, {}
+    for kind, loss in losses.items():
+        params, collected, parts = start, [], []
+        for it in range(args.iterations):
+            t0 = time.time()
+            observation = params.to_config(default)
+            collected.append(
+                filter_windows_of(
+                    train_eps, train_scenes, observation, args, TRAIN_SEED0 + 1000 * it
+                )
+            )
+            train_windows = learn.concat_windows(collected)
+            params, history = learn.train(
+                jax.random.fold_in(key, 3 + it),
+                params,
+                default,
+                train_windows,
+                held_windows,
+                num_steps=args.steps,
+                loss=loss,
+            )
+            parts.append(history._replace(step=history.step + it * args.steps))
+            log_fit(f"{kind} iteration {it} ({train_windows.valid.shape[0]} windows)", history, t0)
+        learned[kind] = params
+        curves[kind] = learn.History(*(np.concatenate(xs) for xs in zip(*parts, strict=True)))
+    return learned, curves
+
+
+def log_fit(name: str, c: learn.History, t0: float) -> None:
+    log(
+        f"{name}: train loss {c.train_loss[0]:.3f} -> {c.train_loss[-1]:.3f}, held-out "
+        f"{c.heldout_loss[0]:.3f} -> {c.heldout_loss[-1]:.3f}, sigma {c.sigma[-1]:.3f} "
+        f"lambda_depth {c.lambda_depth[-1]:.3f} lambda_color {c.lambda_color[-1]:.3f} "
+        f"({time.time() - t0:.0f} s)"
+    )
+
+
 def write_atomic(path: Path, text: str) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     tmp.write_text(text)
@@ -144,6 +228,23 @@ def main() -> None:
         default=float(np.rad2deg(learn.LOCAL_YAW_HALF_RANGE)),
         help="yaw half-range of the local particles (degrees; default: the library's)",
     )
+    parser.add_argument(
+        "--loss-frames",
+        choices=learn.LOSS_FRAMES,
+        default=loss_default.frames,
+        help="the loss of the whole window's posterior ('last') or of every prefix ('every')",
+    )
+    parser.add_argument(
+        "--windows",
+        choices=("box", "filter"),
+        default="box",
+        help="training windows: particles drawn around the truth and over the room ('box', "
+        "jaxloc.learn.sequence_windows) or the filter's own particle sets ('filter', "
+        "jaxloc.learn.filter_windows, alternating filter runs and fits)",
+    )
+    parser.add_argument(
+        "--iterations", type=int, default=2, help="filter runs / fits with --windows filter"
+    )
     args = parser.parse_args()
     out = args.out
     command = "nice -n 5 .venv/bin/python experiments/learn_params.py " + " ".join(sys.argv[1:])
@@ -162,48 +263,60 @@ def main() -> None:
     train_scenes, held_scenes = scenes[: len(train_eps)], scenes[len(train_eps) :]
     log(f"{len(scenes)} episodes built in {time.time() - t0:.0f} s; capacity {scenes[0].capacity}")
 
-    t0 = time.time()
     key = jax.random.key(0)
-    box = (args.box_m, float(np.deg2rad(args.box_deg)))
-    train_windows = windows_of(
-        jax.random.fold_in(key, 1),
-        train_eps,
-        train_scenes,
-        starts,
-        args.window,
-        args.particles,
-        *box,
-    )
-    held_windows = windows_of(
-        jax.random.fold_in(key, 2), held_eps, held_scenes, starts, args.window, args.particles, *box
-    )
-    log(
-        f"windows: {train_windows.valid.shape[0]} train, {held_windows.valid.shape[0]} held-out "
-        f"({args.window} frames x {args.particles} particles) in {time.time() - t0:.0f} s"
-    )
-
     default = ObservationConfig()
     start = learn.LikelihoodParams.from_config(default)
-    learned, curves = {}, {}
-    for kind in learn.LOSS_KINDS:
-        t0 = time.time()
-        learned[kind], curves[kind] = learn.train(
-            jax.random.fold_in(key, 3),
-            start,
-            default,
-            train_windows,
-            held_windows,
-            num_steps=args.steps,
-            loss=learn.LossConfig(
-                kind=kind, position_scale=args.kernel_m, yaw_scale=np.deg2rad(args.kernel_deg)
-            ),
+    losses = {
+        kind: learn.LossConfig(
+            kind=kind,
+            frames=args.loss_frames,
+            position_scale=args.kernel_m,
+            yaw_scale=np.deg2rad(args.kernel_deg),
         )
-        c = curves[kind]
+        for kind in learn.LOSS_KINDS
+    }
+    if args.windows == "box":
+        t0 = time.time()
+        box = (args.box_m, float(np.deg2rad(args.box_deg)))
+        train_windows = windows_of(
+            jax.random.fold_in(key, 1),
+            train_eps,
+            train_scenes,
+            starts,
+            args.window,
+            args.particles,
+            *box,
+        )
+        held_windows = windows_of(
+            jax.random.fold_in(key, 2),
+            held_eps,
+            held_scenes,
+            starts,
+            args.window,
+            args.particles,
+            *box,
+        )
         log(
-            f"{kind}: train loss {c.train_loss[0]:.3f} -> {c.train_loss[-1]:.3f}, held-out "
-            f"{c.heldout_loss[0]:.3f} -> {c.heldout_loss[-1]:.3f}, sigma {c.sigma[-1]:.3f} "
-            f"lambda_depth {c.lambda_depth[-1]:.3f} lambda_color {c.lambda_color[-1]:.3f} "
-            f"({time.time() - t0:.0f} s)"
+            f"windows: {train_windows.valid.shape[0]} train, {held_windows.valid.shape[0]} "
+            f"held-out ({args.window} frames x {args.particles} particles) in "
+            f"{time.time() - t0:.0f} s"
+        )
+        learned, curves = {}, {}
+        for kind, loss in losses.items():
+            t0 = time.time()
+            learned[kind], curves[kind] = learn.train(
+                jax.random.fold_in(key, 3),
+                start,
+                default,
+                train_windows,
+                held_windows,
+                num_steps=args.steps,
+                loss=loss,
+            )
+            log_fit(kind, curves[kind], t0)
+    else:
+        learned, curves = fit_on_filter_windows(
+            key, args, start, default, losses, train_eps, train_scenes, held_eps, held_scenes
         )
     write_curves(curves, command, out)
 
@@ -215,12 +328,7 @@ def main() -> None:
     for i, (episode, scene) in enumerate(zip(held_eps, held_scenes, strict=True)):
         for name, observation in rows.items():
             t0 = time.time()
-            config = SG2LocConfig(
-                capacity=args.capacity,
-                strides=STRIDES,
-                box_half_widths=(0.8,),
-                observation=observation,
-            )
+            config = filter_config(args, observation)
             result = localize(jax.random.key(HELDOUT_SEED0 + i), scene, episode.sequence, config)
             pos, rot = yaw_pose_errors(np.asarray(result.poses), episode.poses_gt)
             errors[name].append((pos, rot))
@@ -261,6 +369,45 @@ def write_curves(curves, command: str, out: Path) -> None:
         for row in zip(*c, strict=True):
             lines.append(",".join([kind] + [f"{v:.6g}" for v in row]))
     write_atomic(out / "learning_curve.csv", "\n".join(lines) + "\n")
+
+
+def paired_lines(hand_set: list, learned: list, resamples: int = 2000) -> list[str]:
+    """Per-scene comparison of two runs on the same scenes: wins / losses / ties of the scene's
+    median and last-frame position error (ties within 1 cm), and a bootstrap over scenes (95 %
+    interval) of the difference of the pooled median position error and of R@(0.25 m, 10 deg)."""
+    count = min(len(hand_set), len(learned))
+    if count == 0:
+        return []
+    lines = [f"Paired over the {count} scenes (learned vs hand-set):", ""]
+    for label, pick in (("median position error", np.median), ("last-frame position", None)):
+        a = np.array([pick(p) if pick else p[-1] for p, _ in hand_set[:count]])
+        b = np.array([pick(p) if pick else p[-1] for p, _ in learned[:count]])
+        wins, losses = int(np.sum(b < a - 0.01)), int(np.sum(b > a + 0.01))
+        lines.append(
+            f"- {label} per scene: learned better on {wins}, worse on {losses}, "
+            f"within 1 cm on {count - wins - losses}"
+        )
+    rng = np.random.default_rng(0)
+    diffs = {"median": [], "recall": []}
+    for _ in range(resamples):
+        picks = rng.integers(0, count, count)
+        stats = []
+        for run in (hand_set, learned):
+            pos = np.concatenate([run[i][0] for i in picks])
+            rot = np.concatenate([run[i][1] for i in picks])
+            stats.append((np.median(pos), np.mean((pos < 0.25) & (rot < 10.0))))
+        diffs["median"].append(stats[1][0] - stats[0][0])
+        diffs["recall"].append(stats[1][1] - stats[0][1])
+    for key, label, unit in (
+        ("median", "pooled median position error", " m"),
+        ("recall", "pooled R@(0.25 m, 10 deg)", ""),
+    ):
+        lo, hi = np.percentile(diffs[key], [2.5, 97.5])
+        lines.append(
+            f"- {label}, learned minus hand-set, bootstrap over scenes: 95 % interval "
+            f"[{lo:+.3f}, {hi:+.3f}]{unit}"
+        )
+    return lines
 
 
 def write_table(errors, rows, args, command, learned, curves, out) -> None:
@@ -306,6 +453,7 @@ def write_table(errors, rows, args, command, learned, curves, out) -> None:
             + " | ".join(f"{s[k]:.3f}" for k in keys)
             + f" | {s_last['median_pos_m']:.3f} | {s_last['R@0.25m,10deg']:.3f} |"
         )
+    md += ["", *paired_lines(errors["hand-set"], errors["learned (nll)"])]
     md += ["", "Learned values of both losses (after the last Adam step):", ""]
     for kind, params in learned.items():
         sigma, ld, lc = (float(v) for v in params.values())

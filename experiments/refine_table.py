@@ -268,6 +268,7 @@ def main() -> None:
                 rot_err_deg=float(rot),
                 seconds=t_filter,
                 position_std_m=float("nan"),
+                inlier_fraction=float("nan"),
             )
         )
         match_rng = np.random.default_rng(seed)
@@ -290,6 +291,7 @@ def main() -> None:
                     rot_err_deg=rot,
                     seconds=time.time() - t0,
                     position_std_m=float(out.position_std),
+                    inlier_fraction=float(out.inlier_fraction),
                 )
             )
         write_table(rows, command, args)
@@ -337,7 +339,9 @@ def write_table(rows, command, args) -> None:
         f"{args.outliers:.0%} outliers. Errors of the last frame's SE(3) pose. "
         "ok_rate: share of refinements reporting ok (a failed one returns the filter pose). "
         "mean_seconds: wall time per call on a shared, heavily loaded 2-core CPU "
-        "(includes compilation on the first episode; noisy).\n\n"
+        "(includes compilation on the first episode; noisy). inlier_fraction: valid residuals "
+        "within 3 sigma at the solved pose, depth re-associated there (the opt-in fit check, "
+        "`RefineConfig.min_inlier_fraction`).\n\n"
         + markdown(summary)
         + "\n\n## Per episode\n\n"
         + markdown(rows)

@@ -20,8 +20,10 @@ import trimesh
 from jaxloc import Camera, Sequence, learn, render, stride_grid
 from jaxloc.filter import Region
 from jaxloc.geometry import compose_yaw, ego_motion, wrap_angle
+from jaxloc.resample import KLDConfig
 from jaxloc.scene import SceneGraph
 from jaxloc.scores import DEPTH_MAX, ObservationConfig, match_patches, particle_log_likelihood
+from jaxloc.sg2loc import SG2LocConfig, localize
 
 CAMERA = Camera.from_fov(16, 9, 70.0)
 ROWS, COLS = 3, 4
@@ -113,23 +115,31 @@ def windows(scene, sequence) -> learn.Windows:
 SCALES = (0.1, float(np.deg2rad(5.0)))
 
 
-def reference_loss(log_params, window: learn.Windows, kind: str, scales=SCALES):
-    """Float64 numpy reference of the window loss (eq. (2), log-softmax, kernel or expectation)."""
+def reference_loss(log_params, window: learn.Windows, kind: str, scales=SCALES, frames="last"):
+    """Float64 numpy reference of the window loss (eq. (2), log-softmax, kernel or expectation),
+    of the whole window's posterior at its last frame or averaged over the window's prefixes."""
     sigma, lambda_depth, lambda_color = np.exp(np.clip(np.asarray(log_params, np.float64), -15, 15))
     semantic, depth, color = (np.asarray(x, np.float64) for x in window[:3])
     total = semantic + lambda_depth * depth + lambda_color * color
     best = 2.0 + lambda_depth * DEPTH_MAX["l1"] + lambda_color * 1.0
-    log_likelihood = np.sum(-((best - total) ** 2) / (2.0 * sigma**2), axis=0)
-    log_likelihood = np.where(np.asarray(window.valid), log_likelihood, -np.inf)
-    log_weights = log_likelihood - np.max(log_likelihood)
-    log_weights -= np.log(np.sum(np.exp(log_weights)))
-    position = np.asarray(window.position_error, np.float64) / scales[0]
-    yaw = np.asarray(window.yaw_error, np.float64) / scales[1]
-    if kind == "nll":
-        terms = log_weights - 0.5 * (position**2 + yaw**2)
-        top = np.max(terms)
-        return -(top + np.log(np.sum(np.exp(terms - top))))
-    return np.sum(np.exp(log_weights) * (position + yaw))
+    per_frame = -((best - total) ** 2) / (2.0 * sigma**2)  # (K, N)
+    num_frames = per_frame.shape[0]
+    prefixes = range(num_frames) if frames == "every" else [num_frames - 1]
+    losses = []
+    for k in prefixes:
+        log_likelihood = np.sum(per_frame[: k + 1], axis=0)
+        log_likelihood = np.where(np.asarray(window.valid), log_likelihood, -np.inf)
+        log_weights = log_likelihood - np.max(log_likelihood)
+        log_weights -= np.log(np.sum(np.exp(log_weights)))
+        position = np.asarray(window.position_error, np.float64)[k] / scales[0]
+        yaw = np.asarray(window.yaw_error, np.float64)[k] / scales[1]
+        if kind == "nll":
+            terms = log_weights - 0.5 * (position**2 + yaw**2)
+            top = np.max(terms)
+            losses.append(-(top + np.log(np.sum(np.exp(terms - top)))))
+        else:
+            losses.append(np.sum(np.exp(log_weights) * (position + yaw)))
+    return float(np.mean(losses))
 
 
 def as_params(log_params) -> learn.LikelihoodParams:
@@ -163,6 +173,8 @@ def test_bad_inputs_raise(scene, sequence):
         learn.LikelihoodParams.from_config(ObservationConfig(lambda_color=0.0))
     with pytest.raises(ValueError, match="kind"):
         learn.LossConfig(kind="mse")
+    with pytest.raises(ValueError, match="frames"):
+        learn.LossConfig(frames="first")
     grid = stride_grid(CAMERA, STRIDE, ROWS, COLS)
     with pytest.raises(ValueError, match="window_length"):
         learn.sequence_windows(jax.random.key(0), scene, sequence, POSES_GT, grid, (2,), 3, 4)
@@ -193,10 +205,10 @@ def test_window_particles_box_region_and_motion():
 
 
 def test_windows_hold_the_filter_scores(scene, sequence, windows):
-    """The stored scores are particle_log_likelihood of the rendered views, the errors are to the
-    last frame's truth."""
+    """The stored scores are particle_log_likelihood of the rendered views, the errors are to each
+    frame's truth."""
     assert windows.semantic.shape == (2, WINDOW, NUM_PARTICLES)
-    assert windows.position_error.shape == (2, NUM_PARTICLES)
+    assert windows.position_error.shape == (2, WINDOW, NUM_PARTICLES)
     assert np.all(np.isfinite(np.asarray(windows.depth)))
     grid = stride_grid(CAMERA, STRIDE, ROWS, COLS)
     region = Region.of_scene(scene)
@@ -221,35 +233,85 @@ def test_windows_hold_the_filter_scores(scene, sequence, windows):
         np.testing.assert_allclose(windows.semantic[1, 1, i], expected.semantic, atol=1e-5)
         np.testing.assert_allclose(windows.depth[1, 1, i], expected.depth, atol=1e-4)
         np.testing.assert_allclose(windows.color[1, 1, i], expected.color, atol=1e-4)
-        truth = POSES_GT[3]
-        np.testing.assert_allclose(
-            windows.position_error[1, i], np.linalg.norm(poses[-1, i, :3] - truth[:3]), atol=1e-5
+        for k in range(WINDOW):  # window 1 covers frames 1..3
+            truth = POSES_GT[1 + k]
+            np.testing.assert_allclose(
+                windows.position_error[1, k, i],
+                np.linalg.norm(poses[k, i, :3] - truth[:3]),
+                atol=1e-5,
+            )
+            yaw = abs(float(wrap_angle(poses[k, i, 3] - truth[3])))
+            np.testing.assert_allclose(windows.yaw_error[1, k, i], yaw, atol=1e-5)
+
+
+def test_filter_windows_reproduce_the_filter_update(scene, sequence):
+    """One-frame windows of a localize run's particle sets: under the run's own parameters their
+    posterior is the filter's weights at every round and frame (the prior is uniform)."""
+    config = SG2LocConfig(
+        capacity=NUM_PARTICLES,
+        strides=(1, 1),  # SSIM needs a grid of at least 7x7 (the 16x9 image)
+        box_half_widths=(0.8,),
+        kld=KLDConfig(min_particles=4, max_particles=NUM_PARTICLES),
+    )
+    result = localize(jax.random.key(7), scene, sequence, config)
+    observation = dataclasses.replace(
+        BASE, use_depth=result.used_depth, use_color=result.used_color
+    )
+    windows = learn.filter_windows(
+        scene,
+        sequence,
+        POSES_GT,
+        result.particles,
+        result.particle_weights,
+        config.strides,
+        observation,
+    )
+    rounds = len(config.strides)
+    assert windows.semantic.shape == (rounds * NUM_FRAMES, 1, NUM_PARTICLES)
+    weights = np.asarray(result.particle_weights).reshape(rounds * NUM_FRAMES, NUM_PARTICLES)
+    np.testing.assert_array_equal(np.asarray(windows.valid), weights > 0)
+    assert 0 < np.asarray(windows.valid).sum() < windows.valid.size  # some slots inactive
+    params = learn.LikelihoodParams.from_config(BASE)
+    posterior = np.exp(
+        np.asarray(jax.vmap(lambda w: learn.window_log_weights(params, observation, w))(windows))
+    )
+    np.testing.assert_allclose(posterior, weights, atol=1e-5)
+    particles = np.asarray(result.particles).reshape(rounds * NUM_FRAMES, NUM_PARTICLES, 4)
+    truth = np.tile(POSES_GT, (rounds, 1))
+    valid = np.asarray(windows.valid)
+    expected = np.linalg.norm(particles[..., :3] - truth[:, None, :3], axis=-1)
+    np.testing.assert_allclose(
+        np.asarray(windows.position_error[:, 0])[valid], expected[valid], atol=1e-5
+    )
+    with pytest.raises(ValueError, match="particles must have shape"):
+        learn.filter_windows(
+            scene, sequence, POSES_GT, result.particles[:1], result.particle_weights, (1, 1)
         )
-        yaw = abs(float(wrap_angle(poses[-1, i, 3] - truth[3])))
-        np.testing.assert_allclose(windows.yaw_error[1, i], yaw, atol=1e-5)
 
 
 # ----------------------------------------------------------------------------- loss, gradients
 
 
+@pytest.mark.parametrize("frames", learn.LOSS_FRAMES)
 @pytest.mark.parametrize("kind", learn.LOSS_KINDS)
 @pytest.mark.parametrize("point", GRADIENT_POINTS)
-def test_loss_and_gradient_match_float64_reference(windows, kind, point):
-    loss_config = learn.LossConfig(kind=kind)
+def test_loss_and_gradient_match_float64_reference(windows, kind, point, frames):
+    loss_config = learn.LossConfig(kind=kind, frames=frames)
     log_params = np.array(point)
     params = as_params(log_params)
     for b in range(2):
         window = one(windows, b)
         value = learn.window_loss(params, BASE, window, loss_config)
-        np.testing.assert_allclose(value, reference_loss(log_params, window, kind), rtol=1e-4)
+        reference = reference_loss(log_params, window, kind, frames=frames)
+        np.testing.assert_allclose(value, reference, rtol=1e-4)
         grads = GRAD(params, BASE, window, loss_config)
         grads = np.array([grads.log_sigma, grads.log_lambda_depth, grads.log_lambda_color])
         step = 1e-5
         numeric = np.array(
             [
                 (
-                    reference_loss(log_params + step * e, window, kind)
-                    - reference_loss(log_params - step * e, window, kind)
+                    reference_loss(log_params + step * e, window, kind, frames=frames)
+                    - reference_loss(log_params - step * e, window, kind, frames=frames)
                 )
                 / (2 * step)
                 for e in np.eye(3)
@@ -259,9 +321,10 @@ def test_loss_and_gradient_match_float64_reference(windows, kind, point):
         np.testing.assert_allclose(grads, numeric, rtol=2e-3, atol=2e-4)
 
 
-def test_degenerate_windows_have_finite_gradients(windows):
+@pytest.mark.parametrize("frames", learn.LOSS_FRAMES)
+def test_degenerate_windows_have_finite_gradients(windows, frames):
     grad = jax.jit(jax.value_and_grad(learn.window_loss), static_argnums=())
-    loss_config = learn.LossConfig()
+    loss_config = learn.LossConfig(frames=frames)
     window = one(windows, 0)
 
     def check(params, window):
