@@ -323,6 +323,11 @@ def score_window(
     scores = jax.vmap(lambda frame, p: score_particles(scene, camera, grid, frame, p, observation))(
         frames, poses
     )
+    return _window(scores, poses, poses_gt, jnp.ones(num_particles, bool))
+
+
+def _window(scores: Scores, poses: Array, poses_gt: Array, valid: Array) -> Windows:
+    """A window from the (K, N) scores of particles ``poses`` (K, N, 4) at truths (K, 4)."""
     truth = jnp.asarray(poses_gt, jnp.float32)[:, None, :]
     return Windows(
         semantic=scores.semantic,
@@ -330,7 +335,7 @@ def score_window(
         color=scores.color,
         position_error=jnp.linalg.norm(poses[..., :3] - truth[..., :3], axis=-1),
         yaw_error=jnp.abs(wrap_angle(poses[..., 3] - truth[..., 3])),
-        valid=jnp.ones(num_particles, bool),
+        valid=valid,
     )
 
 
@@ -418,14 +423,8 @@ def score_particle_set(
     valid = valid & jnp.all(jnp.isfinite(poses), axis=-1)
     poses = jnp.where(valid[:, None], poses, jnp.asarray(pose_gt, jnp.float32))
     scores = score_particles(scene, camera, grid, frame, poses, observation)
-    return Windows(
-        semantic=scores.semantic[None],
-        depth=scores.depth[None],
-        color=scores.color[None],
-        position_error=jnp.linalg.norm(poses[:, :3] - pose_gt[:3], axis=-1)[None],
-        yaw_error=jnp.abs(wrap_angle(poses[:, 3] - pose_gt[3]))[None],
-        valid=valid,
-    )
+    one_frame = jax.tree.map(lambda a: a[None], (scores, poses, pose_gt))
+    return _window(*one_frame, valid)
 
 
 def filter_windows(
@@ -502,7 +501,7 @@ def window_log_weights(params: LikelihoodParams, base: ObservationConfig, window
     The log-softmax of the summed eq. (2) log-likelihoods over the valid particles, ``-inf`` for
     invalid ones (:func:`prefix_log_weights`' last row).
     """
-    return prefix_log_weights(params, base, window)[-1]
+    return _normalised(config_log_likelihood(params.to_config(base), window), window.valid)
 
 
 def prefix_log_weights(params: LikelihoodParams, base: ObservationConfig, window: Windows) -> Array:
