@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from jaxloc.triplet import DescriptorConfig, describe_map, describe_points
+from jaxloc.triplet._descriptors import map_neighbour_lists, neighbour_capacity
 
 CLASSES = (15, 17, 18)
 
@@ -124,11 +125,18 @@ def test_vmap_over_queries_equals_loop():
 
 
 def test_map_path_equals_points_path():
+    """The bucketed, chunked map path equals the dense query path on a map whose vertices need
+    different neighbour capacities (a dense cluster beside sparse vertices)."""
     config = DescriptorConfig(CLASSES, (10.0, 20.0), length_feature="ratio")
-    points, classes = random_vertices(60, 3, extent=40.0)
-    dense, dense_valid = DESCRIBE(points, classes, np.ones(60, bool), config)
-    sparse, sparse_valid = describe_map(
-        points.astype(np.float64) + 500.0, classes, config, chunk=16
+    sparse_points, sparse_classes = random_vertices(40, 3, extent=40.0)
+    dense_points, dense_classes = random_vertices(40, 4, extent=3.0)
+    points = np.concatenate([sparse_points, dense_points])
+    classes = np.concatenate([sparse_classes, dense_classes])
+    counts = [c.size for c in map_neighbour_lists(points.astype(np.float64), 0.0, 10.0)]
+    assert len({neighbour_capacity(c) for c in counts}) >= 3
+    dense, dense_valid = DESCRIBE(points, classes, np.ones(80, bool), config)
+    mapped, mapped_valid = describe_map(
+        points.astype(np.float64) + 500.0, classes, config, pair_budget=2048
     )
-    np.testing.assert_array_equal(np.asarray(dense_valid), sparse_valid)
-    np.testing.assert_allclose(np.asarray(dense), sparse, atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(dense_valid), mapped_valid)
+    np.testing.assert_allclose(np.asarray(dense), mapped, atol=1e-5)

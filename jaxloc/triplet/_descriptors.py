@@ -127,27 +127,29 @@ def vertex_descriptor(
     distance = jnp.sqrt(jnp.sum(offsets * offsets, axis=-1))
     low, high = bounds[0], bounds[1]
     in_scale = neighbour_mask & (distance <= high) & ((distance > low) | (low <= 0.0))
-    k = neighbour_xyz.shape[0]
-    pair_mask = in_scale[:, None] & in_scale[None, :] & jnp.triu(jnp.ones((k, k), bool), 1)
+    # Each unordered pair once: static index arrays of the strict upper triangle.
+    first, second = (jnp.asarray(i, jnp.int32) for i in np.triu_indices(neighbour_xyz.shape[0], 1))
+    pair_mask = in_scale[first] & in_scale[second]
 
     xy = offsets[:, :2]
-    cross = xy[:, None, 0] * xy[None, :, 1] - xy[:, None, 1] * xy[None, :, 0]
-    dot = xy @ xy.T
+    xy_a, xy_b = xy[first], xy[second]
+    cross = xy_a[:, 0] * xy_b[:, 1] - xy_a[:, 1] * xy_b[:, 0]
+    dot = xy_a[:, 0] * xy_b[:, 0] + xy_a[:, 1] * xy_b[:, 1]
     angle = jnp.arctan2(jnp.abs(cross), dot)  # [0, pi]
     angle_bin = jnp.clip(
         jnp.floor(angle * (config.angle_bins / jnp.pi)).astype(jnp.int32), 0, config.angle_bins - 1
     )
     length = jnp.sqrt(jnp.sum(xy * xy, axis=-1))
-    combination = jnp.asarray(config.combination_table())[
-        jnp.clip(neighbour_class, 0)[:, None], jnp.clip(neighbour_class, 0)[None, :]
-    ]
+    length_a, length_b = length[first], length[second]
+    safe_class = jnp.clip(neighbour_class, 0)
+    combination = jnp.asarray(config.combination_table())[safe_class[first], safe_class[second]]
     per_combination = config.angle_bins + config.num_length_histograms * config.length_bins
     base = combination * per_combination
     indices = [base + angle_bin]
     offset = config.angle_bins
     nb = config.length_bins
     if config.length_feature in ("length", "both"):
-        mean_length = 0.5 * (length[:, None] + length[None, :])
+        mean_length = 0.5 * (length_a + length_b)
         span = jnp.maximum(high - low, 1e-6)
         length_bin = jnp.clip(
             jnp.floor((mean_length - low) / span * nb).astype(jnp.int32), 0, nb - 1
@@ -155,15 +157,15 @@ def vertex_descriptor(
         indices.append(base + offset + length_bin)
         offset += nb
     if config.length_feature in ("ratio", "both"):
-        longer = jnp.maximum(length[:, None], length[None, :])
-        shorter = jnp.minimum(length[:, None], length[None, :])
+        longer = jnp.maximum(length_a, length_b)
+        shorter = jnp.minimum(length_a, length_b)
         ratio = jnp.where(longer > 0, shorter / jnp.where(longer > 0, longer, 1.0), 1.0)
         ratio_bin = jnp.clip(jnp.floor(ratio * nb).astype(jnp.int32), 0, nb - 1)
         indices.append(base + offset + ratio_bin)
-    weight = pair_mask.astype(jnp.float32).ravel()
+    weight = pair_mask.astype(jnp.float32)
     histogram = jnp.zeros(config.dim, jnp.float32)
     for index in indices:
-        histogram = histogram.at[index.ravel()].add(weight)
+        histogram = histogram.at[index].add(weight)
     norm = jnp.sqrt(jnp.sum(histogram * histogram))
     valid = jnp.sum(in_scale) >= 2
     descriptor = jnp.where(valid, histogram / jnp.where(norm > 0, norm, 1.0), 0.0)
@@ -197,24 +199,34 @@ def describe_points(
     return descriptors, valid & mask[None, :]
 
 
-def map_neighbour_lists(points: np.ndarray, low: float, high: float) -> np.ndarray:
-    """Host-side padded neighbour indices (N, K) of each point in the 3D interval (low, high];
-    -1 pads; K is the largest count (at least 2)."""
+def map_neighbour_lists(points: np.ndarray, low: float, high: float) -> list[np.ndarray]:
+    """Host-side neighbour indices of each point (N, 3) within the 3D interval (low, high] (int64
+    arrays, the point itself excluded)."""
     tree = cKDTree(points)
-    within = tree.query_ball_point(points, high)
     lists = []
-    for i, candidates in enumerate(within):
+    for i, candidates in enumerate(tree.query_ball_point(points, high)):
         candidates = np.asarray(candidates, np.int64)
         candidates = candidates[candidates != i]
         if low > 0 and candidates.size:
             distance = np.linalg.norm(points[candidates] - points[i], axis=1)
             candidates = candidates[distance > low]
         lists.append(candidates)
-    capacity = max(2, max((c.size for c in lists), default=0))
-    padded = np.full((len(lists), capacity), -1, np.int64)
-    for i, candidates in enumerate(lists):
-        padded[i, : candidates.size] = candidates
-    return padded
+    return lists
+
+
+def neighbour_capacity(count: int) -> int:
+    """Static neighbour-list capacity for ``count`` neighbours: the smallest of 8, 16, 32, 48, 64,
+    96, 128, 192, ... (powers of two and 1.5x between them) that holds it. Few distinct shapes
+    (one compilation each) while padding costs at most ~1.8x the pairs of the exact count."""
+    capacity = 8
+    while capacity < count:
+        half_step = capacity + capacity // 2
+        capacity = half_step if capacity >= 32 and half_step >= count else 2 * capacity
+    return capacity
+
+
+#: Upper bound on chunk x capacity^2 pair slots per jitted call of :func:`describe_map` (memory).
+MAP_PAIR_BUDGET = 1 << 22
 
 
 @eqx.filter_jit
@@ -225,15 +237,23 @@ def _describe_chunk(centers, neighbour_xyz, neighbour_class, neighbour_mask, bou
 
 
 def describe_map(
-    points: np.ndarray, class_positions_: np.ndarray, config: DescriptorConfig, chunk: int = 256
+    points: np.ndarray,
+    class_positions_: np.ndarray,
+    config: DescriptorConfig,
+    pair_budget: int = MAP_PAIR_BUDGET,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Descriptors of all vertices of a (large) map, host-built neighbour lists, jitted chunks.
+
+    Vertices are grouped by the capacity their neighbour list needs (:func:`neighbour_capacity`),
+    so the cost follows each vertex's own neighbour count, not the densest vertex's; each group is
+    described in chunks of at most ``pair_budget`` pair slots (bounded memory). The result equals
+    :func:`describe_points` on the whole map.
 
     Args:
         points: (N, 3) float map vertices (metres; centred coordinates are more accurate).
         class_positions_: (N,) int class positions (index into ``config.classes``).
         config: descriptor configuration.
-        chunk: vertices per jitted call (bounded memory).
+        pair_budget: chunk x capacity^2 bound of one jitted call.
 
     Returns:
         ``descriptors (S, N, D) float32`` and ``valid (S, N) bool`` (numpy).
@@ -244,23 +264,31 @@ def describe_map(
     valid = np.zeros((config.num_scales, n), bool)
     bounds_all = config.scale_bounds()
     centred = (points - points.mean(axis=0)).astype(np.float32) if n else points.astype(np.float32)
+    classes = np.asarray(class_positions_, np.int32)
     for s in range(config.num_scales):
-        neighbours = map_neighbour_lists(points, float(bounds_all[s, 0]), float(bounds_all[s, 1]))
-        mask = neighbours >= 0
-        safe = np.where(mask, neighbours, 0)
-        for start in range(0, n, chunk):
-            stop = min(start + chunk, n)
-            rows = np.arange(start, stop)
-            pad = chunk - rows.size
-            rows_padded = np.concatenate([rows, np.zeros(pad, np.int64)])
-            d, v = _describe_chunk(
-                centred[rows_padded],
-                centred[safe[rows_padded]],
-                np.asarray(class_positions_, np.int32)[safe[rows_padded]],
-                mask[rows_padded] & (np.arange(chunk) < rows.size)[:, None],
-                bounds_all[s],
-                config,
-            )
-            descriptors[s, start:stop] = np.asarray(d)[: rows.size]
-            valid[s, start:stop] = np.asarray(v)[: rows.size]
+        lists = map_neighbour_lists(points, float(bounds_all[s, 0]), float(bounds_all[s, 1]))
+        capacities = np.array([neighbour_capacity(c.size) for c in lists], np.int64)
+        for capacity in np.unique(capacities):
+            members = np.flatnonzero(capacities == capacity)
+            fits = int(pair_budget // capacity**2)
+            chunk = min(1 << max(fits.bit_length() - 1, 0), 1024)  # a power of two, >= 1
+            for start in range(0, members.size, chunk):
+                rows = members[start : start + chunk]
+                neighbours = np.zeros((chunk, capacity), np.int64)
+                mask = np.zeros((chunk, capacity), bool)
+                for slot, row in enumerate(rows):
+                    neighbours[slot, : lists[row].size] = lists[row]
+                    mask[slot, : lists[row].size] = True
+                centers = np.zeros((chunk, 3), np.float32)
+                centers[: rows.size] = centred[rows]
+                d, v = _describe_chunk(
+                    centers,
+                    centred[neighbours],
+                    classes[neighbours],
+                    mask,
+                    bounds_all[s],
+                    config,
+                )
+                descriptors[s, rows] = np.asarray(d)[: rows.size]
+                valid[s, rows] = np.asarray(v)[: rows.size]
     return descriptors, valid
