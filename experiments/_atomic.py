@@ -1,16 +1,5 @@
-"""Atomic text writes for the experiment scripts (write a temporary file, then rename)."""
+"""Atomic text writes for the experiment scripts (the library's own helper)."""
 
-from __future__ import annotations
+from jaxloc._atomic import write_text_atomic
 
-import os
-import tempfile
-from pathlib import Path
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` so a reader never sees a half-written file."""
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.chmod(tmp, 0o644)
-    os.replace(tmp, path)
+__all__ = ["write_text_atomic"]

@@ -9,7 +9,6 @@ A :class:`SceneGraph` is an ``eqx.Module`` pytree of fixed-shape arrays. Its sha
 from __future__ import annotations
 
 import os
-import tempfile
 import zipfile
 from collections.abc import Sequence
 from pathlib import Path
@@ -21,6 +20,7 @@ import numpy as np
 import trimesh
 from jax import Array
 
+from jaxloc._atomic import write_npz_atomic
 from jaxloc.bvh import build_bvh
 
 FORMAT_NAME = "jaxloc.SceneGraph"
@@ -366,18 +366,7 @@ def save_scene(scene: SceneGraph, path: str | os.PathLike) -> None:
         "triangle_colors": np.asarray(scene.triangle_colors)[keep_tri],
         "capacity": np.asarray(tuple(scene.capacity), np.int64),
     }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez_compressed(f, **payload)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    write_npz_atomic(path, payload)
 
 
 def load_scene(path: str | os.PathLike) -> SceneGraph:

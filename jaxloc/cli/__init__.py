@@ -3,6 +3,8 @@
 * ``jaxloc demo``: localize a camera in an embedded synthetic room (SG2Loc, no downloads).
 * ``jaxloc localize-lidar MAP_DIR SCAN...``: one-shot LiDAR localization (M2Loc) of scans in a
   HeLiPR/TripletLoc instance map; prints ``T_map_scan`` per scan, optionally RTE/RRE.
+* ``jaxloc build-lidar-map SEQ_DIR OUT_DIR``: instance and road-normal maps from a labelled LiDAR
+  sequence (SemanticKITTI layout), in the format ``localize-lidar`` reads.
 * ``jaxloc bench raycast|filter|triplet``: quick in-package speed checks after compilation.
 
 Input problems (missing or malformed files, bad numbers) end with exit code 2 and a one-line
@@ -20,7 +22,16 @@ from pathlib import Path
 from jaxloc.cli._bench import run_bench_filter, run_bench_raycast, run_bench_triplet
 from jaxloc.cli._demo import run_demo
 from jaxloc.cli._errors import InputError, run_guarded
-from jaxloc.cli._lidar import run_localize_lidar
+from jaxloc.cli._lidar import (
+    DEFAULT_K,
+    DEFAULT_MIN_CLIQUE,
+    DEFAULT_SCALES,
+    DEFAULT_THRESHOLD,
+    run_localize_lidar,
+)
+from jaxloc.cli._lidar_map import DESCRIPTION as _BUILD_LIDAR_MAP_DESCRIPTION
+from jaxloc.cli._lidar_map import EPILOG as _BUILD_LIDAR_MAP_EPILOG
+from jaxloc.cli._lidar_map import run_build_lidar_map
 
 __all__ = ["InputError", "build_parser", "main"]
 
@@ -30,6 +41,8 @@ examples:
   jaxloc demo                                    # camera localization in a synthetic room
   jaxloc localize-lidar maps/KAIST04 scans/000000.bin
   jaxloc localize-lidar maps/KAIST04 scans/*.bin --gt poses.txt --json > result.json
+  jaxloc build-lidar-map sequences/00 maps/kitti00 --every 30
+  jaxloc localize-lidar maps/kitti00 sequences/00 --every 50
   jaxloc bench raycast --poses 64
   jaxloc bench triplet --queries 20
 
@@ -39,11 +52,13 @@ Run `jaxloc COMMAND --help` for the options of a command.
 _LIDAR_DESCRIPTION = """\
 One-shot global localization of LiDAR scans in an instance map (M2Loc / TripletLoc).
 
-MAP_DIR is a HeLiPR/TripletLoc instance map folder:
-  MAP_DIR/instances/15.txt, 17.txt, 18.txt   lines "id x y z" (trunks, poles, traffic signs;
-                                             map frame, metres)
-  MAP_DIR/RSN/road_normal.txt                optional, lines "x y nx ny nz std_deg": road-surface
-                                             normals, used as a roll/pitch prior
+MAP is a HeLiPR/TripletLoc instance map folder (e.g. written by build-lidar-map):
+  MAP/instances/15.txt, 17.txt, 18.txt   lines "id x y z" (trunks, poles, traffic signs; map
+                                         frame, metres)
+  MAP/RSN/road_normal.txt                optional, lines "x y nx ny nz std_deg": road-surface
+                                         normals, used as a roll/pitch prior
+or a described map saved with --save-map (FILE.npz): it loads in about a second instead of being
+described again; -k, --threshold, --min-clique and --no-rsn still apply to it.
 
 Each SCAN is one of:
   NAME.bin       a SemanticKITTI scan (float32 x y z intensity); its labels NAME.label are read
@@ -52,6 +67,9 @@ Each SCAN is one of:
   NAME.txt       instance centroids already extracted: lines "class_id x y z" (class_id 15, 17
                  or 18; scan frame, metres; '#' starts a comment)
   a folder       instances/15.txt, 17.txt, 18.txt in the map's own format
+  SEQ_DIR        a labelled sequence (velodyne/*.bin + labels/*.label, see build-lidar-map):
+                 every --every-th scan of it; its poses.txt (with calib.txt) gives the ground
+                 truth when --gt is not given
 
 The map's descriptors are built once; every scan is then described, matched, and registered.
 Per scan it prints the 4x4 T_map_scan (p_map = T_map_scan @ p_scan), whether it is valid, the
@@ -65,6 +83,8 @@ examples:
       ../shared/data/semantickitti_scan/000000.bin
   jaxloc localize-lidar MAP scan_centroids.txt --scales 1 -k 10
   jaxloc localize-lidar MAP scans/*.txt --gt poses.txt --json > result.json
+  jaxloc localize-lidar MAP_DIR scans/*.bin --save-map map.npz   # describe once, save
+  jaxloc localize-lidar map.npz sequences/00 --every 20           # reuse the saved map
 
 --gt FILE: one ground-truth T_map_scan per line, in the order of the scans: 12 numbers (KITTI
 3x4, row-major) or 16 (4x4, row-major). Then RTE (m) and RRE (deg) are printed, and the success
@@ -87,14 +107,18 @@ networkx) are the scripts in benchmarks/ of the repository.
 """
 
 
-def _add_triplet_options(parser: argparse.ArgumentParser, scales: int, k: int) -> None:
+def _add_triplet_options(
+    parser: argparse.ArgumentParser, scales: int | None, k: int | None
+) -> None:
+    """Localization options; a None default means "the default, unless a saved map says else"."""
     group = parser.add_argument_group("localization settings")
     group.add_argument(
         "--scales",
         type=int,
         choices=(1, 2, 3),
         default=scales,
-        help=f"M2Loc descriptor scales: [0,20], (20,30], (30,40] m (default {scales})",
+        help="M2Loc descriptor scales: [0,20], (20,30], (30,40] m "
+        f"(default {scales or DEFAULT_SCALES})",
     )
     group.add_argument(
         "--tripletloc",
@@ -102,25 +126,28 @@ def _add_triplet_options(parser: argparse.ArgumentParser, scales: int, k: int) -
         help="use TripletLoc's one-scale descriptor (edge lengths) instead of M2Loc's",
     )
     group.add_argument(
-        "-k", type=int, default=k, help=f"map matches per scan instance and scale (default {k})"
+        "-k",
+        type=int,
+        default=k,
+        help=f"map matches per scan instance and scale (default {k or DEFAULT_K})",
     )
     group.add_argument(
         "--threshold",
         type=float,
-        default=1.0,
-        help="consistency threshold of the match graph, metres (default 1.0)",
+        help=f"consistency threshold of the match graph, metres (default {DEFAULT_THRESHOLD})",
     )
     group.add_argument(
         "--min-clique",
         type=int,
-        default=10,
-        help="add scales while the clique is smaller than this (M2Loc's T, default 10)",
+        help="add scales while the clique is smaller than this (M2Loc's T, default "
+        f"{DEFAULT_MIN_CLIQUE})",
     )
     group.add_argument("--no-rsn", action="store_true", help="ignore the road-normal prior")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of the ``jaxloc`` command (subcommands demo, localize-lidar, bench)."""
+    """The argument parser of the ``jaxloc`` command (demo, localize-lidar, build-lidar-map,
+    bench)."""
     parser = argparse.ArgumentParser(
         prog="jaxloc",
         description="Differentiable global localization against compact maps.",
@@ -155,12 +182,32 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=_LIDAR_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    lidar.add_argument("map_dir", type=Path, metavar="MAP_DIR", help="instance map folder")
+    lidar.add_argument("map", type=Path, metavar="MAP", help="instance map folder or saved .npz")
     lidar.add_argument("scans", type=Path, nargs="+", metavar="SCAN", help="scan file(s)")
     lidar.add_argument("--gt", type=Path, help="ground-truth poses, one per scan (see below)")
+    lidar.add_argument(
+        "--every", type=int, default=1, help="of a sequence folder, every N-th scan (default 1)"
+    )
+    lidar.add_argument("--save-map", type=Path, metavar="FILE", help="save the described map")
     lidar.add_argument("--json", action="store_true", help="print one JSON document instead")
     lidar.add_argument("--no-progress", action="store_true", help="no progress bar")
-    _add_triplet_options(lidar, scales=3, k=25)
+    _add_triplet_options(lidar, scales=None, k=None)
+
+    build = commands.add_parser(
+        "build-lidar-map",
+        help="instance + road-normal maps from a labelled LiDAR sequence (SemanticKITTI layout)",
+        description=_BUILD_LIDAR_MAP_DESCRIPTION,
+        epilog=_BUILD_LIDAR_MAP_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    build.add_argument("seq_dir", type=Path, metavar="SEQ_DIR", help="labelled sequence folder")
+    build.add_argument("out_dir", type=Path, metavar="OUT_DIR", help="map folder to write")
+    build.add_argument(
+        "--every", type=int, default=30, help="use every K-th scan (default 30, as TripletLoc)"
+    )
+    build.add_argument("--save-map", type=Path, metavar="FILE", help="also save it described")
+    build.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_triplet_options(build, scales=None, k=None)
 
     bench = commands.add_parser(
         "bench",
@@ -228,6 +275,7 @@ def build_parser() -> argparse.ArgumentParser:
 _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "demo": run_demo,
     "localize-lidar": run_localize_lidar,
+    "build-lidar-map": run_build_lidar_map,
     "bench raycast": run_bench_raycast,
     "bench filter": run_bench_filter,
     "bench triplet": run_bench_triplet,

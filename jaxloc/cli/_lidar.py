@@ -124,42 +124,55 @@ def load_scan(path: Path, classes: Sequence[int]) -> ScanInstances:
 def load_poses(path: Path, count: int) -> np.ndarray:
     """Ground-truth ``T_map_scan`` per scan: one pose per line, 12 numbers (KITTI 3x4 row-major)
     or 16 (4x4 row-major), in the order of the scans. Returns (count, 4, 4) float64."""
-    rows = _read_number_rows(path, (12, 16), "a 3x4 or 4x4 pose, row-major")
-    if len(rows) != count:
-        raise InputError(f"{path}: {len(rows)} poses for {count} scan(s)")
-    poses = np.tile(np.eye(4), (count, 1, 1))
-    for index, row in enumerate(rows):
-        poses[index].flat[: row.size] = row
-    if not np.allclose(poses[:, 3], [0, 0, 0, 1]):
-        raise InputError(f"{path}: the last row of a 4x4 pose must be 0 0 0 1")
-    rotations = poses[:, :3, :3]
-    gram_error = np.abs(rotations @ np.swapaxes(rotations, 1, 2) - np.eye(3)).max(axis=(1, 2))
-    bad = np.flatnonzero((gram_error > 1e-3) | (np.linalg.det(rotations) < 0))
-    if bad.size:
-        raise InputError(f"{path}: pose {bad[0] + 1}: its 3x3 block must be a rotation")
+    from jaxloc.triplet import read_poses
+
+    try:
+        poses = read_poses(path)
+    except ValueError as error:
+        raise InputError(str(error)) from error
+    if len(poses) != count:
+        raise InputError(f"{path}: {len(poses)} poses for {count} scan(s)")
     return poses
+
+
+#: Defaults of the localization options (None in argparse, so that a saved map can tell which
+#: options were given).
+DEFAULT_SCALES, DEFAULT_K, DEFAULT_THRESHOLD, DEFAULT_MIN_CLIQUE = 3, 25, 1.0, 10
+
+
+def _matching_options(args: argparse.Namespace) -> dict:
+    """The options that do not change descriptors, as TripletConfig fields (given ones only)."""
+    given = {
+        "top_k": args.k,
+        "consistency_threshold": args.threshold,
+        "min_clique": args.min_clique,
+    }
+    options = {name: value for name, value in given.items() if value is not None}
+    if args.no_rsn:
+        options["use_rsn"] = False
+    return options
 
 
 def triplet_config(args: argparse.Namespace):
     from jaxloc.triplet import m2loc_config, tripletloc_config
 
     options = dict(
-        top_k=args.k,
-        consistency_threshold=args.threshold,
-        min_clique=args.min_clique,
-        use_rsn=not args.no_rsn,
+        top_k=DEFAULT_K,
+        consistency_threshold=DEFAULT_THRESHOLD,
+        min_clique=DEFAULT_MIN_CLIQUE,
     )
+    options.update(_matching_options(args))
     if args.tripletloc:
         return tripletloc_config(**options)
-    return m2loc_config(args.scales, **options)
+    return m2loc_config(args.scales or DEFAULT_SCALES, **options)
 
 
 def check_config_args(args: argparse.Namespace) -> None:
-    if args.k < 1:
+    if args.k is not None and args.k < 1:
         raise InputError(f"-k must be >= 1, got {args.k}")
-    if not args.threshold > 0:
+    if args.threshold is not None and not args.threshold > 0:
         raise InputError(f"--threshold must be > 0 metres, got {args.threshold}")
-    if args.min_clique < 1:
+    if args.min_clique is not None and args.min_clique < 1:
         raise InputError(f"--min-clique must be >= 1, got {args.min_clique}")
 
 
@@ -193,6 +206,71 @@ def describe_map(points: np.ndarray, labels: np.ndarray, config, normals, name: 
         return build_map(points, labels, config, normals)
     except ValueError as error:
         raise InputError(f"map {name}: {error}") from error
+
+
+def open_map(path: Path, args: argparse.Namespace):
+    """The described map of ``MAP``: a saved ``.npz`` (:func:`jaxloc.triplet.save_triplet_map`;
+    the options that do not change descriptors override its settings) or a map folder (described
+    with the options). Returns the TripletMap and the number of seconds it took."""
+    import dataclasses
+
+    import equinox as eqx
+
+    from jaxloc.triplet import load_triplet_map
+
+    start = time.perf_counter()
+    if path.is_file():
+        if args.scales is not None or args.tripletloc:
+            raise InputError(
+                f"{path}: a saved map keeps the descriptors it was described with; drop "
+                "--scales / --tripletloc (or describe the map folder again)"
+            )
+        try:
+            triplet_map = load_triplet_map(path)
+            config = dataclasses.replace(triplet_map.config, **_matching_options(args))
+        except ValueError as error:  # MapFormatError, or an option the map cannot take
+            raise InputError(f"{path}: {error}") from error
+        if config.top_k > triplet_map.points.shape[0]:
+            raise InputError(f"{path}: -k {config.top_k} exceeds the map's vertices")
+        triplet_map = eqx.tree_at(lambda m: m.config, triplet_map, config)
+    else:
+        config = triplet_config(args)
+        instances, normals = load_map_files(path, config.descriptor.classes, not args.no_rsn)
+        triplet_map = describe_map(instances.points, instances.labels, config, normals, str(path))
+    return triplet_map, time.perf_counter() - start
+
+
+def save_map(triplet_map, path: Path) -> None:
+    """:func:`jaxloc.triplet.save_triplet_map` to a ``.npz`` path (atomic write)."""
+    from jaxloc.triplet import save_triplet_map
+
+    if path.suffix != ".npz":
+        raise InputError(f"--save-map {path}: the file name must end in .npz")
+    save_triplet_map(triplet_map, path)
+
+
+def expand_scans(paths: Sequence[Path], every: int) -> tuple[list[Path], np.ndarray | None]:
+    """SCAN arguments as scan paths: a sequence folder (``velodyne/*.bin`` + ``labels/``) gives
+    every ``every``-th of its scans. Returns the paths and, when every argument is a sequence
+    with ``poses.txt``, their ground-truth ``T_map_scan`` (else None)."""
+    from jaxloc.triplet import is_sequence_dir, load_lidar_sequence
+
+    scans, poses = [], []
+    for path in paths:
+        if not is_sequence_dir(path):
+            check_scan_path(path)
+            scans.append(path)
+            poses.append(None)
+            continue
+        try:
+            sequence = load_lidar_sequence(path, require_poses=False)
+        except (ValueError, FileNotFoundError) as error:
+            raise InputError(str(error)) from error
+        scans += list(sequence.bins[::every])
+        truth = sequence.T_map_scan
+        poses += [None] * len(sequence.bins[::every]) if truth is None else list(truth[::every])
+    known = all(pose is not None for pose in poses)
+    return scans, (np.stack(poses) if known else None)
 
 
 def localize_one(triplet_map, scan: ScanInstances):
@@ -264,26 +342,25 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
     from jaxloc.triplet._metrics import SUCCESS_RRE_DEG, SUCCESS_RTE_M
 
     check_config_args(args)
-    for scan_path in args.scans:
-        check_scan_path(scan_path)
-    T_gt = None if args.gt is None else load_poses(args.gt, len(args.scans))
-    config = triplet_config(args)
-    start = time.perf_counter()
-    instances, normals = load_map_files(args.map_dir, config.descriptor.classes, not args.no_rsn)
-    triplet_map = describe_map(
-        instances.points, instances.labels, config, normals, str(args.map_dir)
-    )
-    build_s = time.perf_counter() - start
-    num_vertices, has_rsn = len(instances.points), normals is not None
+    if args.every < 1:
+        raise InputError(f"--every must be >= 1, got {args.every}")
+    scans, sequence_poses = expand_scans(args.scans, args.every)
+    T_gt = sequence_poses if args.gt is None else load_poses(args.gt, len(scans))
+    triplet_map, build_s = open_map(args.map, args)
+    if args.save_map is not None:
+        save_map(triplet_map, args.save_map)
+    classes = triplet_map.config.descriptor.classes
+    num_vertices, has_rsn = int(triplet_map.points.shape[0]), triplet_map.has_rsn
     say = (lambda _: None) if args.json else print
     say(
-        f"map {args.map_dir}: {num_vertices} instances, "
-        f"{'with' if has_rsn else 'without'} road normals, described in {build_s:.1f} s"
+        f"map {args.map}: {num_vertices} instances, "
+        f"{'with' if has_rsn else 'without'} road normals, "
+        f"{'loaded' if args.map.is_file() else 'described'} in {build_s:.1f} s"
     )
     records = []
-    show_bar = len(args.scans) > 1 and not args.no_progress
-    for index, scan_path in enumerate(tqdm(args.scans, unit="scan", disable=not show_bar)):
-        scan = load_scan(scan_path, config.descriptor.classes)
+    show_bar = len(scans) > 1 and not args.no_progress
+    for index, scan_path in enumerate(tqdm(scans, unit="scan", disable=not show_bar)):
+        scan = load_scan(scan_path, classes)
         try:
             result, compile_s = localize_one(triplet_map, scan)
         except ValueError as error:  # duplicate points and the like: a problem of the scan
@@ -294,7 +371,7 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
         records.append(record)
         if not args.json:
             tqdm.write(_format_record(record))
-    summary = {"map": str(args.map_dir), "map_instances": num_vertices, "map_build_s": build_s}
+    summary = {"map": str(args.map), "map_instances": num_vertices, "map_build_s": build_s}
     if T_gt is not None:
         success = [
             r["valid"] and r["rte_m"] < SUCCESS_RTE_M and r["rre_deg"] < SUCCESS_RRE_DEG

@@ -4,8 +4,8 @@ Pipeline: instances from labelled points (:func:`cluster_instances`) -> multi-sc
 descriptors (:func:`describe_points`, :func:`describe_map`) -> per-class top-k matching
 (:func:`match_descriptors`) -> consistency graph (:func:`consistency_graph`) -> maximum clique
 (:func:`max_clique`) with M2Loc's dynamic enhancement -> Kabsch + robust refinement with the
-road-surface-normal prior (:func:`register`). User entry points: :func:`build_map` and
-:func:`localize_scan`.
+road-surface-normal prior (:func:`register`). User entry points: :func:`build_map` (saved
+with :func:`save_triplet_map`, loaded with :func:`load_triplet_map`) and :func:`localize_scan`.
 """
 
 from jaxloc.triplet._clique import max_clique, max_clique_exact, max_clique_with_info
@@ -37,6 +37,15 @@ from jaxloc.triplet._io import (
     load_semantickitti_scan,
     semantickitti_class_ids,
 )
+from jaxloc.triplet._map_file import FORMAT_VERSION as TRIPLET_MAP_FORMAT_VERSION
+from jaxloc.triplet._map_file import load_triplet_map, save_triplet_map
+from jaxloc.triplet._mapping import (
+    LidarMaps,
+    MapBuildConfig,
+    build_lidar_maps,
+    fit_plane,
+    save_lidar_maps,
+)
 from jaxloc.triplet._matching import consistency_graph, match_descriptors
 from jaxloc.triplet._metrics import localization_errors, summarize_localization
 from jaxloc.triplet._pipeline import (
@@ -52,22 +61,34 @@ from jaxloc.triplet._pipeline import (
     tripletloc_config,
 )
 from jaxloc.triplet._registration import point_residuals, register, up_axis_prior, weighted_kabsch
+from jaxloc.triplet._sequence import (
+    LidarSequence,
+    is_sequence_dir,
+    load_lidar_sequence,
+    read_kitti_calibration,
+    read_poses,
+)
 
 __all__ = [
     "GRAPH_CLASSES",
     "POLE",
     "TRAFFIC_SIGN",
+    "TRIPLET_MAP_FORMAT_VERSION",
     "TRUNK",
     "ClusterConfig",
     "DescriptorConfig",
     "InstanceMap",
     "Instances",
     "LabelledScan",
+    "LidarMaps",
+    "LidarSequence",
     "LocalizationResult",
+    "MapBuildConfig",
     "QueryOutput",
     "RoadNormals",
     "TripletConfig",
     "TripletMap",
+    "build_lidar_maps",
     "build_map",
     "class_positions",
     "cluster_instances",
@@ -76,10 +97,14 @@ __all__ = [
     "describe_points",
     "describe_query",
     "euclidean_clusters",
+    "fit_plane",
     "fuse_instances",
+    "is_sequence_dir",
     "load_instance_map",
+    "load_lidar_sequence",
     "load_road_normals",
     "load_semantickitti_scan",
+    "load_triplet_map",
     "localization_errors",
     "localize_scan",
     "m2loc_config",
@@ -88,8 +113,12 @@ __all__ = [
     "max_clique_exact",
     "max_clique_with_info",
     "point_residuals",
+    "read_kitti_calibration",
+    "read_poses",
     "register",
     "register_query",
+    "save_lidar_maps",
+    "save_triplet_map",
     "semantickitti_class_ids",
     "summarize_localization",
     "tripletloc_config",

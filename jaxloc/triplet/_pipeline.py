@@ -199,13 +199,14 @@ def build_map(
     Args:
         map_points: (N, 3) instance centroids, map frame, metres.
         map_labels: (N,) int class ids (e.g. 15 trunk, 17 pole, 18 traffic sign).
-        config: localization configuration (default TripletLoc).
+        config: localization configuration (default M2Loc, ``m2loc_config(3)``; TripletLoc is
+            ``tripletloc_config()``).
         road_normals: optional RSN cells for the roll/pitch prior.
 
     Raises:
         ValueError: bad shapes, NaN/inf, unknown labels, duplicates, or fewer than 3 vertices.
     """
-    config = TripletConfig() if config is None else config
+    config = m2loc_config(3) if config is None else config
     classes = config.descriptor.classes
     points, labels = _check_points_labels(map_points, map_labels, classes, "map")
     if points.shape[0] < 3:
@@ -459,7 +460,8 @@ def localize_scan(
         map_labels: (N,) int class ids (15 trunk, 17 pole, 18 traffic sign by default).
         scan_points: (Nq, 3) scan instance centroids (scan frame, metres).
         scan_labels: (Nq,) int class ids.
-        config: localization configuration (default TripletLoc; ignored with a prebuilt map).
+        config: localization configuration (default M2Loc, ``m2loc_config(3)``, as the command
+            line; TripletLoc is ``tripletloc_config()``; ignored with a prebuilt map).
 
     Returns:
         A :class:`LocalizationResult`; ``pose`` is the 4x4 ``T_map_scan``. Fewer than 3 scan
