@@ -215,13 +215,14 @@ def map_neighbour_lists(points: np.ndarray, low: float, high: float) -> list[np.
 
 
 def neighbour_capacity(count: int) -> int:
-    """Static neighbour-list capacity for ``count`` neighbours: the smallest of 8, 16, 32, 48, 64,
-    96, 128, 192, ... (powers of two and 1.5x between them) that holds it. Few distinct shapes
-    (one compilation each) while padding costs at most ~1.8x the pairs of the exact count."""
-    capacity = 8
+    """Static neighbour-list capacity for ``count`` neighbours: the smallest of 16, 32, 64, 96,
+    128, 192, 256, ... (powers of two, and 1.5x between them from 64 on) that holds it. Few
+    distinct shapes (each compiles once, ~0.5 s on 2 cores) while padding costs at most ~1.8x
+    the pairs of the exact count where most pairs are (large lists)."""
+    capacity = 16
     while capacity < count:
         half_step = capacity + capacity // 2
-        capacity = half_step if capacity >= 32 and half_step >= count else 2 * capacity
+        capacity = half_step if capacity >= 64 and half_step >= count else 2 * capacity
     return capacity
 
 
