@@ -17,6 +17,17 @@ CLASSES = (15, 17, 18)
 DESCRIBE = jax.jit(describe_points, static_argnums=3)
 
 
+def vote(hist, start, u, bins, config):
+    """One pair's vote at bin coordinate u: one bin (hard) or the two enclosing bin centres."""
+    if not config.soft_bins:
+        hist[start + min(max(int(math.floor(u)), 0), bins - 1)] += 1
+        return
+    lower = math.floor(u - 0.5)
+    share = (u - 0.5) - lower
+    hist[start + min(max(lower, 0), bins - 1)] += 1 - share
+    hist[start + min(max(lower + 1, 0), bins - 1)] += share
+
+
 def reference(points, classes, config):
     """Loop over every vertex, scale and neighbour pair (TripletLoc's get_descriptor_fast)."""
     n, s_count = len(points), config.num_scales
@@ -46,17 +57,16 @@ def reference(points, classes, config):
                     theta += 2 * math.pi
                 angle = abs(math.degrees(theta))
                 base = table[classes[a], classes[b]] * per
-                hist[base + min(int(angle / (180 / config.angle_bins)), config.angle_bins - 1)] += 1
+                vote(hist, base, angle / (180 / config.angle_bins), config.angle_bins, config)
                 la, lb = np.linalg.norm(va), np.linalg.norm(vb)
                 offset = config.angle_bins
                 nb = config.length_bins
                 if config.length_feature in ("length", "both"):
-                    bin_ = int(((la + lb) / 2 - low) / (high - low) * nb)
-                    hist[base + offset + min(max(bin_, 0), nb - 1)] += 1
+                    vote(hist, base + offset, ((la + lb) / 2 - low) / (high - low) * nb, nb, config)
                     offset += nb
                 if config.length_feature in ("ratio", "both"):
                     ratio = min(la, lb) / max(la, lb) if max(la, lb) > 0 else 1.0
-                    hist[base + offset + min(int(ratio * nb), nb - 1)] += 1
+                    vote(hist, base + offset, ratio * nb, nb, config)
             out[s, i] = hist / np.linalg.norm(hist)
     return out, valid
 
@@ -73,6 +83,8 @@ def random_vertices(n, seed, extent=30.0):
         DescriptorConfig(CLASSES, (20.0,), length_feature="length"),
         DescriptorConfig(CLASSES, (10.0, 20.0, 30.0), length_feature="ratio"),
         DescriptorConfig(CLASSES, (15.0, 25.0), length_feature="both"),
+        DescriptorConfig(CLASSES, (10.0, 20.0, 30.0), length_feature="ratio", soft_bins=True),
+        DescriptorConfig(CLASSES, (20.0,), length_feature="both", soft_bins=True),
     ],
 )
 def test_descriptors_match_brute_force_under_jit(config):

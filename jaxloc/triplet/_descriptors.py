@@ -41,6 +41,9 @@ class DescriptorConfig(eqx.Module):
         angle_bins: angle histogram bins over [0, 180] degrees.
         length_bins: bins of the edge-length (or length-ratio) histogram.
         length_feature: "length" (TripletLoc), "ratio" (M2Loc) or "both".
+        soft_bins: split each pair's vote between the two bins whose centres enclose its value
+            (linear weights) instead of one bin, so centroid jitter near a bin edge moves a
+            fraction of a vote, not all of it (default False: TripletLoc's and M2Loc's hard bins).
     """
 
     classes: tuple[int, ...] = eqx.field(static=True, default=GRAPH_CLASSES)
@@ -48,6 +51,7 @@ class DescriptorConfig(eqx.Module):
     angle_bins: int = eqx.field(static=True, default=36)
     length_bins: int = eqx.field(static=True, default=40)
     length_feature: LengthFeature = eqx.field(static=True, default="length")
+    soft_bins: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self) -> None:
         edges = self.scale_edges
@@ -102,6 +106,22 @@ def class_positions(labels: Array, classes: tuple[int, ...]) -> Array:
     return jnp.where(jnp.any(match, axis=-1), jnp.argmax(match, axis=-1), -1).astype(jnp.int32)
 
 
+def _votes(u: Array, bins: int, soft: bool, start: Array) -> list[tuple[Array, Array | float]]:
+    """Histogram votes of values at bin coordinates ``u`` (P,) (the value in bin widths from the
+    histogram's low end): ``[(start + bin, 1.0)]`` (hard), or the two bins whose centres enclose
+    ``u`` with linear weights (soft; beyond the outer centres all goes to the edge bin)."""
+    if not soft:
+        return [(start + jnp.clip(jnp.floor(u).astype(jnp.int32), 0, bins - 1), 1.0)]
+    centred = u - 0.5
+    lower = jnp.floor(centred)
+    upper_share = centred - lower
+    lower = lower.astype(jnp.int32)
+    return [
+        (start + jnp.clip(lower, 0, bins - 1), 1.0 - upper_share),
+        (start + jnp.clip(lower + 1, 0, bins - 1), upper_share),
+    ]
+
+
 def vertex_descriptor(
     center: Array,
     neighbour_xyz: Array,
@@ -136,36 +156,30 @@ def vertex_descriptor(
     cross = xy_a[:, 0] * xy_b[:, 1] - xy_a[:, 1] * xy_b[:, 0]
     dot = xy_a[:, 0] * xy_b[:, 0] + xy_a[:, 1] * xy_b[:, 1]
     angle = jnp.arctan2(jnp.abs(cross), dot)  # [0, pi]
-    angle_bin = jnp.clip(
-        jnp.floor(angle * (config.angle_bins / jnp.pi)).astype(jnp.int32), 0, config.angle_bins - 1
-    )
     length = jnp.sqrt(jnp.sum(xy * xy, axis=-1))
     length_a, length_b = length[first], length[second]
     safe_class = jnp.clip(neighbour_class, 0)
     combination = jnp.asarray(config.combination_table())[safe_class[first], safe_class[second]]
     per_combination = config.angle_bins + config.num_length_histograms * config.length_bins
     base = combination * per_combination
-    indices = [base + angle_bin]
+    # (index, weight) votes of each pair; the bin coordinate u is the value in bin widths
+    votes = _votes(angle * (config.angle_bins / jnp.pi), config.angle_bins, config.soft_bins, base)
     offset = config.angle_bins
     nb = config.length_bins
     if config.length_feature in ("length", "both"):
         mean_length = 0.5 * (length_a + length_b)
         span = jnp.maximum(high - low, 1e-6)
-        length_bin = jnp.clip(
-            jnp.floor((mean_length - low) / span * nb).astype(jnp.int32), 0, nb - 1
-        )
-        indices.append(base + offset + length_bin)
+        votes += _votes((mean_length - low) / span * nb, nb, config.soft_bins, base + offset)
         offset += nb
     if config.length_feature in ("ratio", "both"):
         longer = jnp.maximum(length_a, length_b)
         shorter = jnp.minimum(length_a, length_b)
         ratio = jnp.where(longer > 0, shorter / jnp.where(longer > 0, longer, 1.0), 1.0)
-        ratio_bin = jnp.clip(jnp.floor(ratio * nb).astype(jnp.int32), 0, nb - 1)
-        indices.append(base + offset + ratio_bin)
+        votes += _votes(ratio * nb, nb, config.soft_bins, base + offset)
     weight = pair_mask.astype(jnp.float32)
     histogram = jnp.zeros(config.dim, jnp.float32)
-    for index in indices:
-        histogram = histogram.at[index].add(weight)
+    for index, share in votes:
+        histogram = histogram.at[index].add(weight * share)
     norm = jnp.sqrt(jnp.sum(histogram * histogram))
     valid = jnp.sum(in_scale) >= 2
     descriptor = jnp.where(valid, histogram / jnp.where(norm > 0, norm, 1.0), 0.0)
