@@ -24,6 +24,7 @@ pipeline (Multi-3-En, Table I settings) it records:
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -99,6 +100,11 @@ def true_clique_size(query, pairs: list[tuple[int, int]], map_points, threshold)
 
 def analyse(name, points, labels, normals, args) -> dict:
     config = m2loc_config(3, query_capacity=CAPACITY, min_inlier_fraction=0.0, top_k=args.k)
+    if args.one_to_one:
+        config = dataclasses.replace(config, one_to_one=True)
+    if args.soft_bins:
+        descriptor = dataclasses.replace(config.descriptor, soft_bins=True)
+        config = dataclasses.replace(config, descriptor=descriptor)
     triplet_map = build_map(points, labels, config, normals)
     map_valid = np.asarray(triplet_map.valid)
     rng = np.random.default_rng(args.seed)
@@ -112,6 +118,7 @@ def analyse(name, points, labels, normals, args) -> dict:
     for query in queries:
         query_valid, out = run_query(triplet_map, query)
         true = np.flatnonzero(query.map_index >= 0)
+        fraction = (lambda x: float(np.mean(x))) if true.size else (lambda x: float("nan"))
         truth = query.map_index[true]
         matches = out["association_map"].reshape(scales, CAPACITY, k)
         in_top = np.stack([np.any(matches[s, true] == truth[:, None], axis=1) for s in range(3)])
@@ -139,12 +146,12 @@ def analyse(name, points, labels, normals, args) -> dict:
             dict(
                 vertices=len(query.points),
                 true=len(true),
-                q_desc_s1=float(np.mean(query_valid[0, true])),
-                q_desc_any=float(np.mean(np.any(query_valid[:, true], axis=0))),
-                m_desc_s1=float(np.mean(map_valid[0, truth])),
-                top_s1=float(np.mean(in_top[0])),
-                top_any=float(np.mean(np.any(in_top, axis=0))),
-                top_used=float(np.mean(reached)),
+                q_desc_s1=fraction(query_valid[0, true]),
+                q_desc_any=fraction(np.any(query_valid[:, true], axis=0)),
+                m_desc_s1=fraction(map_valid[0, truth]),
+                top_s1=fraction(in_top[0]),
+                top_any=fraction(np.any(in_top, axis=0)),
+                top_used=fraction(reached),
                 reached=len(pairs),
                 true_clique=best_true,
                 clique=int(clique.sum()),
@@ -160,8 +167,8 @@ def analyse(name, points, labels, normals, args) -> dict:
 def summarize(result: dict) -> dict:
     rows = result["rows"]
 
-    def mean(key):
-        return float(np.mean([r[key] for r in rows]))
+    def mean(key):  # queries without a true vertex have no fraction
+        return float(np.nanmean([r[key] for r in rows]))
 
     def median(key):
         return float(np.median([r[key] for r in rows]))
@@ -186,6 +193,11 @@ def summarize(result: dict) -> dict:
     )
 
 
+def options_text(args) -> str:
+    names = [("soft bins", args.soft_bins), ("one-to-one", args.one_to_one)]
+    return "".join(f", {name}" for name, on in names if on)
+
+
 def write_table(summaries: list[dict], args) -> str:
     header = (
         "| map | queries | vertices / true (median) | desc. s1 / any | map desc. s1 | "
@@ -193,10 +205,12 @@ def write_table(summaries: list[dict], args) -> str:
         "(true in it) | success | no true clique | outvoted | pose | rejected |"
     )
     lines = [
-        f"# Where M2Loc (Multi-3-En, k = {args.k}) loses scan-sized queries",
+        f"# Where M2Loc (Multi-3-En, k = {args.k}{options_text(args)}) loses scan-sized queries",
         "",
         f"Command: `JAX_PLATFORMS=cpu python experiments/m2loc_losses.py --queries {args.queries} "
         f"--seed {args.seed} --max-kept {args.max_kept} -k {args.k}"
+        + (" --soft-bins" if args.soft_bins else "")
+        + (" --one-to-one" if args.one_to_one else "")
         + (f" --maps {' '.join(args.maps)}" if args.maps != DEFAULT_MAPS else "")
         + "`",
         "",
@@ -229,6 +243,8 @@ def main() -> None:
     parser.add_argument("--max-kept", type=int, default=25)
     parser.add_argument("-k", type=int, default=25)
     parser.add_argument("--maps", nargs="+", default=DEFAULT_MAPS)
+    parser.add_argument("--soft-bins", action="store_true", help="DescriptorConfig.soft_bins")
+    parser.add_argument("--one-to-one", action="store_true", help="TripletConfig.one_to_one")
     parser.add_argument("--suffix", default="", help="output file name suffix")
     args = parser.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)

@@ -45,17 +45,21 @@ def consistency_graph(
     map_points: Array,
     valid: Array,
     threshold: float | Array,
+    query_index: Array | None = None,
+    map_index: Array | None = None,
 ) -> Array:
     """Pairwise-consistency adjacency of associations (query point i <-> map point i).
 
     Edge ``(a, b)`` when ``| |q_a - q_b| - |m_a - m_b| | <= threshold`` (metres), both valid,
-    ``a != b``.
+    ``a != b``; with ``query_index`` and ``map_index`` also only when the two associations share
+    neither their query vertex nor their map vertex (a clique is then a one-to-one matching).
 
     Args:
         query_points: (A, 3) query positions of the associations (scan frame).
         map_points: (A, 3) map positions (map frame; centred coordinates are more accurate).
         valid: (A,) bool.
         threshold: consistency tolerance in metres.
+        query_index, map_index: optional (A,) int32 vertex of each association's two ends.
 
     Returns:
         (A, A) bool symmetric adjacency, False on the diagonal and for invalid associations.
@@ -68,4 +72,10 @@ def consistency_graph(
 
     consistent = jnp.abs(distances(query_points) - distances(map_points)) <= threshold
     n = valid.shape[0]
-    return consistent & valid[:, None] & valid[None, :] & ~jnp.eye(n, dtype=bool)
+    adjacency = consistent & valid[:, None] & valid[None, :] & ~jnp.eye(n, dtype=bool)
+    if query_index is not None and map_index is not None:
+        shared = (query_index[:, None] == query_index[None, :]) | (
+            map_index[:, None] == map_index[None, :]
+        )
+        adjacency = adjacency & ~shared
+    return adjacency

@@ -48,6 +48,9 @@ class TripletConfig(eqx.Module):
         descriptor: descriptor configuration (classes, scales, histograms).
         top_k: map matches per query vertex, class and scale.
         consistency_threshold: metres, ``| |q_i - q_j| - |m_i - m_j| |`` bound of an edge.
+        one_to_one: no edge between associations that share a query or a map vertex, so a
+            clique is a one-to-one matching (default False: TripletLoc's graph, where nearby map
+            vertices of one query vertex can all join a clique).
         min_clique: M2Loc's T: add scales while the clique is smaller than this.
         min_inliers: fewer clique vertices than this gives ``valid = False``.
         min_inlier_fraction: place-not-in-the-map rejection: after registration, the fraction of
@@ -66,6 +69,7 @@ class TripletConfig(eqx.Module):
     descriptor: DescriptorConfig = DescriptorConfig()
     top_k: int = eqx.field(static=True, default=25)
     consistency_threshold: float = eqx.field(static=True, default=1.0)
+    one_to_one: bool = eqx.field(static=True, default=False)
     min_clique: int = eqx.field(static=True, default=10)
     min_inliers: int = eqx.field(static=True, default=3)
     min_inlier_fraction: float = eqx.field(static=True, default=0.5)
@@ -354,11 +358,13 @@ def register_query(
         # Associations are scale-major: scales <= s are the first (s + 1) * Nq * k of them, so
         # each stage builds only its own graph (a static prefix), and lax.switch runs only it.
         def run():
+            ends = (assoc_query[:size], assoc_map[:size]) if config.one_to_one else (None, None)
             adjacency = consistency_graph(
                 query_xyz[:size],
                 map_xyz[:size],
                 assoc_valid[:size],
                 config.consistency_threshold,
+                *ends,
             )
             clique, exact = max_clique_symmetric(
                 adjacency,
