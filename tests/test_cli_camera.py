@@ -167,5 +167,7 @@ def test_localize_camera_bad_map_and_options(built, tmp_path, capsys):
     assert_input_error(*result, "broken.npz: not a readable jaxloc map")
     result = run(["localize-camera", built[0], seq, *LOCALIZE, "--strides", "20"], capsys)
     assert_input_error(*result, "stride 20 casts 4x3 rays", "(SSIM) needs 7x7")
+    result = run(["localize-camera", built[0], seq, *LOCALIZE, "--refine", "--no-depth"], capsys)
+    assert_input_error(*result, "--refine needs depth images", "depth")
     result = run(["localize-camera", built[0], seq, *LOCALIZE, "--heights", "nan"], capsys)
     assert_input_error(*result, "heights must be a non-empty tuple")

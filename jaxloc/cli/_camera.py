@@ -106,8 +106,6 @@ def _refine_last(scene, folder, result) -> dict:
     from jaxloc.metrics import position_error, rotation_error_deg
     from jaxloc.refine import refine
 
-    if folder.sequence.depth is None:
-        raise InputError("--refine needs depth images (depth/ and without --no-depth)")
     refined = refine(scene, folder.sequence, result.poses[-1])
     T = np.asarray(refined.pose.as_matrix(), np.float64)
     out = {"ok": bool(refined.ok), "status": int(refined.status), "T_world_cam": T.tolist()}
@@ -144,6 +142,8 @@ def run_localize_camera(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise InputError(str(error)) from None
     seq = folder.sequence
+    if args.refine and seq.depth is None:
+        raise InputError(f"--refine needs depth images: {args.seq_dir / 'depth'} (no --no-depth)")
     if seq.rgb is not None:
         for stride in args.strides:
             rays = (-(-seq.camera.width // stride), -(-seq.camera.height // stride))
