@@ -10,7 +10,14 @@ import shutil
 
 import numpy as np
 import pytest
-from _camera_fixtures import room_objects, write_matrix, write_scannet_scan, write_sequence
+from _camera_fixtures import (
+    room_objects,
+    write_3rscan_scan,
+    write_binary_ply,
+    write_matrix,
+    write_scannet_scan,
+    write_sequence,
+)
 
 from jaxloc.camera import Camera
 from jaxloc.cli import main
@@ -18,6 +25,7 @@ from jaxloc.datasets.scene_builder import onehot_classes
 from jaxloc.scene import load_scene
 
 FRAMES = [0, 2, 11, 30, 102, 1000]
+NAMES = ["floor", "wall", "bed", "cabinet", "table", "chair"]
 #: A walk of 6 frames at 1.3 m through the fixture room, turning 1.8 rad, slightly tilted.
 _S = np.linspace(0.0, 1.0, len(FRAMES))
 POSES = np.stack([2.6 - 0.6 * _S, 1.0 + 0.5 * _S, np.full_like(_S, 1.3), -0.3 + 1.8 * _S], 1)
@@ -76,6 +84,39 @@ def test_build_scene_graph_prints_objects_and_size(built, tmp_path, capsys):
     assert int(match.group(1)) == scene.num_triangles
     assert float(match.group(2)) == pytest.approx(scene.storage_mb(), abs=1e-3)
     assert "one-hot per class, dimension i = class id 1 2 3 4 5 7" in out
+
+
+def test_build_scene_graph_from_3rscan_and_generic(tmp_path, capsys):
+    """The other two formats, with an embedding table by label (text) and by object (.npy)."""
+    objects = room_objects()
+    scan = write_3rscan_scan(tmp_path / "3rscan", objects)
+    table = tmp_path / "labels.txt"
+    table.write_text("".join(f"{label} 1 {k} 0.5\n" for k, label in enumerate(NAMES)))
+    out_map = tmp_path / "3rscan.npz"
+    code, out, err = run(
+        ["build-scene-graph", scan, out_map, "--format", "3rscan", "--embeddings", table], capsys
+    )
+    assert code == 0, err
+    assert out.startswith("9 objects (6 classes), ") and "embeddings: 3-d from" in out
+    assert load_scene(out_map).num_objects == 9
+    box = room_objects()[5][2]
+    ply = tmp_path / "cloud.ply"
+    instance = np.full(len(box.vertices), 4)
+    colors = np.full((len(box.vertices), 3), 200, np.uint8)
+    write_binary_ply(ply, box.vertices, colors, None, extra={"objectId": instance})
+    (tmp_path / "objects.txt").write_text("4 5 chair\n")
+    np.save(tmp_path / "by_object.npy", np.eye(5))
+    out_map = tmp_path / "generic.npz"
+    code, out, err = run(
+        ["build-scene-graph", ply, out_map, "--format", "generic", "--objects",
+         tmp_path / "objects.txt", "--embeddings", tmp_path / "by_object.npy",
+         "--embeddings-by", "object"],
+        capsys,
+    )  # fmt: skip
+    assert code == 0, err
+    scene = load_scene(out_map)
+    assert scene.num_objects == 1 and int(scene.labels[0]) == 5
+    np.testing.assert_allclose(np.asarray(scene.embeddings[0]), np.eye(5)[4])
 
 
 @pytest.mark.slow
