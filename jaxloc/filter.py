@@ -25,6 +25,7 @@ from jaxloc._convert import as_float32, as_int32
 from jaxloc._render import render_batch
 from jaxloc.camera import Camera, RayGrid
 from jaxloc.particles import (
+    PAPER_HEIGHTS,
     ParticleState,
     inject_uniform,
     mle,
@@ -69,6 +70,8 @@ class StepConfig(eqx.Module):
         sigma_trans, sigma_rot: motion-model noise (metres, radians), traced.
         inject_count: particles replaced by random ones on injection frames (traced; 0 = off).
         inject_every: inject on frames whose index is a positive multiple of this (static).
+        heights: (H,) float32 camera heights above ``region.floor_z`` (metres) of the particles
+            spread over the region and of injected ones (default the paper's 1.5-1.8 m).
     """
 
     camera: Camera
@@ -80,6 +83,7 @@ class StepConfig(eqx.Module):
     sigma_rot: Array = eqx.field(default=0.05, converter=as_float32)
     inject_count: Array = eqx.field(default=0, converter=as_int32)
     inject_every: int = eqx.field(static=True, default=5)
+    heights: Array = eqx.field(default=PAPER_HEIGHTS, converter=as_float32)
 
 
 class Frame(eqx.Module):
@@ -207,7 +211,9 @@ def step(
     inject_now = (frame.index > 0) & (frame.index % config.inject_every == 0)
     count = jnp.where(inject_now, config.inject_count, 0)
     region = config.region
-    state = inject_uniform(key_inject, state, count, region.lo, region.hi, region.floor_z)
+    state = inject_uniform(
+        key_inject, state, count, region.lo, region.hi, region.floor_z, config.heights
+    )
     info = StepInfo(
         mle=best_pose,
         mean=mean_pose,

@@ -15,6 +15,7 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jax.sharding import Mesh
 from tqdm.auto import tqdm
@@ -23,7 +24,7 @@ from jaxloc._convert import as_float32
 from jaxloc.camera import stride_grid
 from jaxloc.filter import Region, StepConfig, StepInfo, frames_on_grid, run_pass, step
 from jaxloc.geometry import uncompose_yaw
-from jaxloc.particles import DEFAULT_BOX_YAW_HALF_RANGE, init_box, init_region
+from jaxloc.particles import DEFAULT_BOX_YAW_HALF_RANGE, PAPER_HEIGHTS, init_box, init_region
 from jaxloc.resample import KLDConfig
 from jaxloc.scene import SceneGraph
 from jaxloc.scores import ObservationConfig
@@ -46,6 +47,9 @@ class SG2LocConfig(eqx.Module):
         inject_count, inject_every: random-particle injection (reference: 2000 every 5th frame;
             default off).
         region: initialisation region (default: the map's floor bounds).
+        heights: camera heights above the region's floor (metres) of round 0's particles and of
+            injected ones (static; default the paper's 1.5, 1.6, 1.7, 1.8 m). Set them near the
+            query camera's real height (e.g. 1.2-1.5 m for a hand-held ScanNet camera).
     """
 
     capacity: int = eqx.field(static=True, default=2500)
@@ -59,6 +63,9 @@ class SG2LocConfig(eqx.Module):
     inject_count: int = 0
     inject_every: int = eqx.field(static=True, default=5)
     region: Region | None = None
+    heights: tuple[float, ...] = eqx.field(
+        static=True, default=PAPER_HEIGHTS, converter=lambda h: tuple(float(x) for x in h)
+    )
 
     def __check_init__(self):
         if not isinstance(self.capacity, int) or self.capacity < 1:
@@ -72,6 +79,10 @@ class SG2LocConfig(eqx.Module):
             )
         if any(not h > 0 for h in self.box_half_widths):
             raise ValueError(f"box_half_widths must be positive, got {self.box_half_widths}")
+        if len(self.heights) < 1 or not all(np.isfinite(h) and h >= 0 for h in self.heights):
+            raise ValueError(
+                f"heights must be a non-empty tuple of finite heights >= 0 m, got {self.heights}"
+            )
 
 
 class SG2LocResult(NamedTuple):
@@ -112,7 +123,9 @@ def carry_back(pose: Array, ego_motion: Array) -> Array:
 def _initial_state(key, init_args, step_config: StepConfig, capacity: int, mesh: Mesh | None):
     if init_args is None:
         region = step_config.region
-        state = init_region(key, capacity, region.lo, region.hi, region.floor_z)
+        state = init_region(
+            key, capacity, region.lo, region.hi, region.floor_z, heights=step_config.heights
+        )
     else:
         centre, half_width, yaw_half_range = init_args
         state = init_box(key, capacity, centre, jnp.full((3,), half_width), yaw_half_range)
@@ -212,6 +225,7 @@ def localize(
             sigma_rot=config.sigma_rot,
             inject_count=config.inject_count,
             inject_every=config.inject_every,
+            heights=config.heights,
         )
         init_args = (
             None if r == 0 else (centre, config.box_half_widths[r - 1], config.yaw_half_range)

@@ -442,6 +442,27 @@ def test_localize_rejects_an_embedding_dimension_mismatch(episode, scene):
         localize(jax.random.key(0), scene, short, SEMANTIC_CONFIG)
 
 
+def test_localize_spreads_round_0_over_the_configured_camera_heights(episode, scene):
+    """SG2LocConfig.heights sets the levels of round 0's particles (default: the paper's 1.5-1.8 m
+    above the floor); without motion noise, the first frame's particles sit exactly on them."""
+    seq = episode.sequence
+    one = Sequence(seq.camera, seq.patch_embeddings[:1], np.zeros((0, 4)))
+    floor = float(Region.of_scene(scene).floor_z)
+    for heights in [(1.2, 1.35), None]:
+        config = dataclasses.replace(SEMANTIC_CONFIG, sigma_trans=0.0)
+        if heights is not None:
+            config = dataclasses.replace(config, heights=heights)
+        result = localize(jax.random.key(3), scene, one, config)
+        alive = np.asarray(result.particle_weights[0, 0]) > 0
+        levels = np.unique(np.round(np.asarray(result.particles[0, 0, alive, 2]) - floor, 4))
+        expected = (1.5, 1.6, 1.7, 1.8) if heights is None else heights
+        np.testing.assert_allclose(levels, expected, atol=1e-4)
+    with pytest.raises(ValueError, match="heights must be a non-empty tuple"):
+        SG2LocConfig(heights=())
+    with pytest.raises(ValueError, match="heights must be a non-empty tuple"):
+        SG2LocConfig(heights=(1.3, float("nan")))
+
+
 def test_localize_rejects_wrong_argument_types(episode, scene):
     with pytest.raises(TypeError, match="scene must be a jaxloc.SceneGraph"):
         localize(jax.random.key(0), episode.room, episode.sequence, SEMANTIC_CONFIG)

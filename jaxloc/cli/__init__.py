@@ -6,6 +6,8 @@
 * ``jaxloc build-lidar-map SEQ_DIR OUT_DIR``: instance and road-normal maps from a labelled LiDAR
   sequence (SemanticKITTI layout), in the format ``localize-lidar`` reads.
 * ``jaxloc bench raycast|filter|triplet``: quick in-package speed checks after compilation.
+* ``jaxloc build-scene-graph SCAN OUT.npz``: a map from a ScanNet / 3RScan / labelled scan.
+* ``jaxloc localize-camera MAP.npz SEQ_DIR``: SG2Loc on a folder of RGB-D frames.
 
 Input problems (missing or malformed files, bad numbers) end with exit code 2 and a one-line
 message on stderr, never a traceback. ``main(argv)`` returns the exit code, so the command can be
@@ -19,6 +21,7 @@ import sys
 from collections.abc import Callable
 from pathlib import Path
 
+from jaxloc.cli import _camera, _scene_graph
 from jaxloc.cli._bench import run_bench_filter, run_bench_raycast, run_bench_triplet
 from jaxloc.cli._demo import run_demo
 from jaxloc.cli._errors import InputError, run_guarded
@@ -45,6 +48,8 @@ examples:
   jaxloc localize-lidar maps/kitti00 sequences/00 --every 50
   jaxloc bench raycast --poses 64
   jaxloc bench triplet --queries 20
+  jaxloc build-scene-graph scans/scene0000_00 scene0000_00.npz --format scannet
+  jaxloc localize-camera scene0000_00.npz scans/scene0000_00/export --plot run.png
 
 Run `jaxloc COMMAND --help` for the options of a command.
 """
@@ -269,6 +274,8 @@ def build_parser() -> argparse.ArgumentParser:
     triplet.add_argument("--blocks", type=int, default=2, help="synthetic world: blocks per side")
     triplet.add_argument("--seed", type=int, default=0, help="world and query seed (default 0)")
     _add_triplet_options(triplet, scales=1, k=25)
+    _scene_graph.add_parser(commands)
+    _camera.add_parser(commands)
     return parser
 
 
@@ -279,6 +286,8 @@ _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "bench raycast": run_bench_raycast,
     "bench filter": run_bench_filter,
     "bench triplet": run_bench_triplet,
+    "build-scene-graph": _scene_graph.run_build_scene_graph,
+    "localize-camera": _camera.run_localize_camera,
 }
 
 

@@ -70,6 +70,6 @@ def run_demo(args: argparse.Namespace) -> int:
         f"last frame: {summary['median_pos_m']:.3f} m, {summary['median_rot_deg']:.2f} deg; "
         f"total {time.perf_counter() - start:.0f} s"
     )
-    figure = plot_rounds(result, episode.poses_gt, args.out, np.asarray(scene.bounds))
+    figure = plot_rounds(result, episode.poses_gt, args.out, scene=scene)
     print(f"figure: {figure}")
     return 0
