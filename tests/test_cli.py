@@ -105,6 +105,9 @@ def write_semantickitti(folder: Path, query) -> Path:
         [],
         ["demo"],
         ["localize-lidar"],
+        ["build-lidar-map"],
+        ["build-scene-graph"],
+        ["localize-camera"],
         ["bench"],
         ["bench", "raycast"],
         ["bench", "filter"],
@@ -126,6 +129,11 @@ def test_help_explains_file_formats(capsys):
         main(["localize-lidar", "--help"])
     out = capsys.readouterr().out
     for needle in ("instances/15.txt", "road_normal.txt", ".label", "class_id x y z", "--gt"):
+        assert needle in out
+    with pytest.raises(SystemExit):
+        main(["build-lidar-map", "--help"])
+    out = capsys.readouterr().out
+    for needle in ("velodyne/NNNNNN.bin", "labels/NNNNNN.label", "poses.txt", "calib.txt", "Tr"):
         assert needle in out
 
 

@@ -33,6 +33,7 @@ import jax
 import numpy as np
 from PIL import Image
 
+from jaxloc._rigid import rigid_mask
 from jaxloc._textio import data_lines, parse_finite_floats
 from jaxloc.camera import Camera
 from jaxloc.geometry import R_BODY_CAM, ego_motion
@@ -40,8 +41,6 @@ from jaxloc.sequence import Sequence
 
 #: ScanNet's depth shift: depth png value / 1000 = metres.
 DEPTH_SCALE = 1000.0
-#: Tolerance of the rigid-transform check on a pose's rotation (|R^T R - I|, |det R - 1|).
-RIGID_TOLERANCE = 1e-3
 
 
 class CameraFolder(NamedTuple):
@@ -99,12 +98,7 @@ def read_matrix(path: str | os.PathLike, allow_invalid: bool = False) -> np.ndar
 
 def check_rigid(matrix: np.ndarray, where: str) -> np.ndarray:
     """``matrix`` if it is a rigid transform (orthonormal rotation, det +1, last row 0 0 0 1)."""
-    rotation = matrix[:3, :3]
-    if (
-        np.abs(rotation.T @ rotation - np.eye(3)).max() > RIGID_TOLERANCE
-        or abs(np.linalg.det(rotation) - 1.0) > RIGID_TOLERANCE
-        or np.abs(matrix[3] - [0, 0, 0, 1]).max() > 1e-6
-    ):
+    if not rigid_mask(matrix):
         raise ValueError(f"{where}: not a rigid transform (rotation not orthonormal or last row)")
     return matrix
 

@@ -26,6 +26,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxloc._rigid import rigid_mask
 from jaxloc._textio import data_lines, parse_finite_floats
 
 
@@ -60,11 +61,8 @@ def is_sequence_dir(path: str | os.PathLike) -> bool:
 
 def check_rigid(poses: np.ndarray, path: str | os.PathLike) -> None:
     """Raise ``ValueError`` naming ``path`` and the 1-based row unless every (4, 4) pose is rigid
-    (last row 0 0 0 1, 3x3 block a rotation within 1e-3)."""
-    bottom = np.abs(poses[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=1) > 1e-9
-    rotations = poses[:, :3, :3]
-    gram_error = np.abs(rotations @ np.swapaxes(rotations, 1, 2) - np.eye(3)).max(axis=(1, 2))
-    bad = np.flatnonzero(bottom | (gram_error > 1e-3) | (np.linalg.det(rotations) < 0))
+    (:func:`jaxloc._rigid.rigid_mask`)."""
+    bad = np.flatnonzero(~rigid_mask(poses))
     if bad.size:
         raise ValueError(f"{path}: pose {bad[0] + 1} is not rigid (a rotation and a translation)")
 
