@@ -102,6 +102,8 @@ def analyse(name, points, labels, normals, args) -> dict:
     config = m2loc_config(3, query_capacity=CAPACITY, min_inlier_fraction=0.0, top_k=args.k)
     if args.one_to_one:
         config = dataclasses.replace(config, one_to_one=True)
+    if args.attempts > 1:
+        config = dataclasses.replace(config, registration_attempts=args.attempts)
     if args.soft_bins:
         descriptor = dataclasses.replace(config.descriptor, soft_bins=True)
         config = dataclasses.replace(config, descriptor=descriptor)
@@ -194,7 +196,11 @@ def summarize(result: dict) -> dict:
 
 
 def options_text(args) -> str:
-    names = [("soft bins", args.soft_bins), ("one-to-one", args.one_to_one)]
+    names = [
+        ("soft bins", args.soft_bins),
+        ("one-to-one", args.one_to_one),
+        (f"{args.attempts} attempts", args.attempts > 1),
+    ]
     return "".join(f", {name}" for name, on in names if on)
 
 
@@ -211,6 +217,7 @@ def write_table(summaries: list[dict], args) -> str:
         f"--seed {args.seed} --max-kept {args.max_kept} -k {args.k}"
         + (" --soft-bins" if args.soft_bins else "")
         + (" --one-to-one" if args.one_to_one else "")
+        + (f" --attempts {args.attempts}" if args.attempts > 1 else "")
         + (f" --maps {' '.join(args.maps)}" if args.maps != DEFAULT_MAPS else "")
         + "`",
         "",
@@ -245,6 +252,7 @@ def main() -> None:
     parser.add_argument("--maps", nargs="+", default=DEFAULT_MAPS)
     parser.add_argument("--soft-bins", action="store_true", help="DescriptorConfig.soft_bins")
     parser.add_argument("--one-to-one", action="store_true", help="TripletConfig.one_to_one")
+    parser.add_argument("--attempts", type=int, default=1, help="registration_attempts")
     parser.add_argument("--suffix", default="", help="output file name suffix")
     args = parser.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)

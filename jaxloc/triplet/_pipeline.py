@@ -57,6 +57,12 @@ class TripletConfig(eqx.Module):
             the scan's vertices that land within ``verify_radius`` of a map vertex of their class
             must reach this (0 disables; see ``experiments/results/m2loc/rejection.md``).
         verify_radius: metres, the verification radius.
+        registration_attempts: cliques and poses tried at most (1: one, TripletLoc's and
+            M2Loc's way). While the best pose so far verifies below ``retry_inlier_fraction``,
+            another attempt drops the associations that agree with the poses tried (within
+            ``verify_radius``) and solves the clique and the pose again; the attempt with the
+            highest inlier fraction is kept.
+        retry_inlier_fraction: the verification level below which an attempt is retried.
         loss: robust loss of the pose refinement (GNC-TLS, 1 m, by default).
         use_rsn: use the road-surface-normal prior when the map has RSN cells.
         rot_delta_deg: added to an RSN cell's normal std (degrees) for the prior's sigma.
@@ -70,6 +76,8 @@ class TripletConfig(eqx.Module):
     top_k: int = eqx.field(static=True, default=25)
     consistency_threshold: float = eqx.field(static=True, default=1.0)
     one_to_one: bool = eqx.field(static=True, default=False)
+    registration_attempts: int = eqx.field(static=True, default=1)
+    retry_inlier_fraction: float = eqx.field(static=True, default=0.5)
     min_clique: int = eqx.field(static=True, default=10)
     min_inliers: int = eqx.field(static=True, default=3)
     min_inlier_fraction: float = eqx.field(static=True, default=0.5)
@@ -90,6 +98,8 @@ class TripletConfig(eqx.Module):
             raise ValueError("top_k >= 1, min_inliers >= 3 and min_clique >= 1 are required")
         if not self.consistency_threshold > 0:
             raise ValueError("consistency_threshold must be > 0")
+        if self.registration_attempts < 1 or not 0.0 <= self.retry_inlier_fraction <= 1.0:
+            raise ValueError("registration_attempts >= 1 and retry_inlier_fraction in [0, 1]")
         if not 0.0 <= self.min_inlier_fraction <= 1.0 or not self.verify_radius > 0:
             raise ValueError("min_inlier_fraction must be in [0, 1] and verify_radius > 0")
         check_clique_sizes(self.clique_compact_size, self.clique_greedy_tiers)
@@ -357,18 +367,18 @@ def register_query(
     def clique_of_prefix(size):
         # Associations are scale-major: scales <= s are the first (s + 1) * Nq * k of them, so
         # each stage builds only its own graph (a static prefix), and lax.switch runs only it.
-        def run():
+        def run(usable):
             ends = (assoc_query[:size], assoc_map[:size]) if config.one_to_one else (None, None)
             adjacency = consistency_graph(
                 query_xyz[:size],
                 map_xyz[:size],
-                assoc_valid[:size],
+                usable[:size],
                 config.consistency_threshold,
                 *ends,
             )
             clique, exact = max_clique_symmetric(
                 adjacency,
-                assoc_valid[:size],
+                usable[:size],
                 prefilter_size=config.clique_prefilter_size,
                 greedy_tiers=config.clique_greedy_tiers,
                 compact_size=config.clique_compact_size,
@@ -380,49 +390,90 @@ def register_query(
         return run
 
     stages = [clique_of_prefix((s + 1) * per_scale) for s in range(num_scales)]
-
-    def solve(scale):
-        return jax.lax.switch(scale, stages)
-
-    def keep_going(state):
-        scale, clique, _ = state
-        return (scale < 0) | ((jnp.sum(clique) < config.min_clique) & (scale < num_scales - 1))
-
-    def next_scale(state):
-        scale = state[0] + 1
-        clique, exact = solve(scale)
-        return scale, clique, exact
-
-    start = (jnp.int32(-1), jnp.zeros_like(assoc_valid), jnp.array(False))
-    scale, clique, exact = jax.lax.while_loop(keep_going, next_scale, start)
-    clique_size = jnp.sum(clique)
-
-    normal, sigma = None, None
-    if triplet_map.has_rsn and config.use_rsn:
-        weight = clique.astype(jnp.float32)
-        centre = jnp.sum(map_xyz[:, :2] * weight[:, None], 0) / jnp.maximum(jnp.sum(weight), 1.0)
-        cell = jnp.argmin(jnp.sum((triplet_map.rsn_xy - centre) ** 2, axis=1))
-        normal, sigma = triplet_map.rsn_normals[cell], triplet_map.rsn_sigma[cell]
-    # The pose only needs the clique: compact it to a static 2 * Nq pairs (a clique rarely holds
-    # more than one association per query vertex) so the solver sees small residual vectors.
-    _, chosen = jax.lax.top_k(clique.astype(jnp.float32), min(2 * nq, total))  # f32: fast on CPU
-    solution, _ = register(
-        query_xyz[chosen],
-        map_xyz[chosen],
-        clique[chosen],
-        loss=config.loss,
-        normal=normal,
-        normal_sigma=sigma,
-        max_steps=config.solver_steps,
-    )
-    matrix = solution.pose.as_matrix()
     mask = jnp.any(descriptor_valid, axis=0) if mask is None else mask
-    fraction = verified_fraction(
-        matrix, points, classes, mask, triplet_map.points, triplet_map.classes, config.verify_radius
-    )
-    valid = (
-        solution.ok & (clique_size >= config.min_inliers) & (fraction >= config.min_inlier_fraction)
-    )
+
+    def attempt(usable):
+        """Clique with the dynamic enhancement over the ``usable`` associations, then the pose
+        and its verification. Returns (clique, exact, scale, ok, T (4, 4) centred, fraction)."""
+
+        def keep_going(state):
+            scale, clique, _ = state
+            return (scale < 0) | ((jnp.sum(clique) < config.min_clique) & (scale < num_scales - 1))
+
+        def next_scale(state):
+            scale = state[0] + 1
+            clique, exact = jax.lax.switch(scale, stages, usable)
+            return scale, clique, exact
+
+        start = (jnp.int32(-1), jnp.zeros_like(usable), jnp.array(False))
+        scale, clique, exact = jax.lax.while_loop(keep_going, next_scale, start)
+        normal, sigma = None, None
+        if triplet_map.has_rsn and config.use_rsn:
+            weight = clique.astype(jnp.float32)
+            centre = jnp.sum(map_xyz[:, :2] * weight[:, None], 0) / jnp.maximum(
+                jnp.sum(weight), 1.0
+            )
+            cell = jnp.argmin(jnp.sum((triplet_map.rsn_xy - centre) ** 2, axis=1))
+            normal, sigma = triplet_map.rsn_normals[cell], triplet_map.rsn_sigma[cell]
+        # The pose only needs the clique: compact it to a static 2 * Nq pairs (a clique rarely
+        # holds more than one association per query vertex) so the solver sees small residuals.
+        _, chosen = jax.lax.top_k(clique.astype(jnp.float32), min(2 * nq, total))  # f32: fast
+        solution, _ = register(
+            query_xyz[chosen],
+            map_xyz[chosen],
+            clique[chosen],
+            loss=config.loss,
+            normal=normal,
+            normal_sigma=sigma,
+            max_steps=config.solver_steps,
+        )
+        matrix = solution.pose.as_matrix()
+        fraction = verified_fraction(
+            matrix,
+            points,
+            classes,
+            mask,
+            triplet_map.points,
+            triplet_map.classes,
+            config.verify_radius,
+        )
+        return clique, exact, scale, solution.ok, matrix, fraction
+
+    if config.registration_attempts == 1:
+        clique, exact, scale, solved, matrix, fraction = attempt(assoc_valid)
+    else:
+        # Retry while the best pose so far verifies poorly; each retry drops every association
+        # that agrees with the poses tried (within verify_radius), so a rejected hypothesis and
+        # its near-copies cannot win again. The best-verified attempt is kept.
+        def disagrees(matrix):
+            moved = query_xyz @ matrix[:3, :3].T + matrix[:3, 3]
+            return jnp.sum((moved - map_xyz) ** 2, axis=-1) > config.verify_radius**2
+
+        def retry(state):
+            count, usable, best = state
+            result = attempt(usable)
+            better = result[5] > best[5]
+            best = jax.tree.map(lambda new, old: jnp.where(better, new, old), result, best)
+            usable = usable & ~result[0] & disagrees(result[4])
+            return count + 1, usable, best
+
+        def again(state):
+            count, usable, best = state
+            retry_wanted = (count < config.registration_attempts) & jnp.any(usable)
+            return (count == 0) | (retry_wanted & (best[5] < config.retry_inlier_fraction))
+
+        empty = (
+            jnp.zeros_like(assoc_valid),
+            jnp.array(False),
+            jnp.int32(0),
+            jnp.array(False),
+            jnp.eye(4, dtype=jnp.float32),
+            jnp.float32(-1.0),
+        )
+        _, _, best = jax.lax.while_loop(again, retry, (jnp.int32(0), assoc_valid, empty))
+        clique, exact, scale, solved, matrix, fraction = best
+    clique_size = jnp.sum(clique)
+    valid = solved & (clique_size >= config.min_inliers) & (fraction >= config.min_inlier_fraction)
     matrix = matrix.at[:3, 3].add(triplet_map.origin)
     matrix = jnp.where(valid, matrix, jnp.eye(4, dtype=matrix.dtype))
     return QueryOutput(
