@@ -44,10 +44,13 @@ ROWS = {
     "TripletLoc": lambda: tripletloc_config(**COMMON),
     "Multi-3-En": lambda: m2loc_config(3, **COMMON),
     "Multi-2-En": lambda: m2loc_config(2, **COMMON),
+    # the small-scan options of experiments/m2loc_losses.py (one-to-one cliques, 3 attempts)
+    "Multi-3-En-R": lambda: m2loc_config(3, robust=True, **COMMON),
+    "Multi-3-En-R-k50": lambda: m2loc_config(3, robust=True, top_k=50, **COMMON),
 }
 
 #: Display order (ROWS builds Multi-3 first so Multi-2 reuses its first two scales).
-ORDER = ("TripletLoc", "Multi-2-En", "Multi-3-En")
+ORDER = ("TripletLoc", "Multi-2-En", "Multi-3-En", "Multi-3-En-R", "Multi-3-En-R-k50")
 
 
 def maps():
@@ -93,6 +96,9 @@ def main() -> None:
                     full,
                     (full.descriptors[:2], full.valid[:2], config),
                 )
+            elif row.startswith("Multi-3-En-R") and "Multi-3-En" in built:
+                # same descriptors as Multi-3-En; only the matching and clique settings differ
+                triplet_map = eqx.tree_at(lambda m: m.config, built["Multi-3-En"], config)
             else:
                 triplet_map = build_map(points, labels, config, normals)
             built[row] = triplet_map
@@ -180,7 +186,7 @@ def plot(errors) -> None:
         for ax, name in zip(axes[0], names, strict=True):
             data = [errors[(name, row)][index] for row in ORDER]
             ax.boxplot([d if len(d) else [np.nan] for d in data], showfliers=False)
-            ax.set_xticks(range(1, len(ORDER) + 1), ["TL", "M2", "M3"])
+            ax.set_xticks(range(1, len(ORDER) + 1), ["TL", "M2", "M3", "M3R", "M3R50"])
             ax.set_title(name, fontsize=9)
         axes[0][0].set_ylabel(label)
         fig.tight_layout()

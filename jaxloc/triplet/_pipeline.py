@@ -114,13 +114,20 @@ def m2loc_config(
     num_scales: int = 3,
     scale_edges: tuple[float, ...] = (20.0, 30.0, 40.0),
     length_feature: str = "ratio",
+    robust: bool = False,
     **overrides,
 ) -> TripletConfig:
     """M2Loc "Multi-n-En": the first ``num_scales`` intervals of ``scale_edges``, angle +
-    length-ratio histograms, dynamic clique enhancement with T = 10."""
+    length-ratio histograms, dynamic clique enhancement with T = 10.
+
+    ``robust=True`` adds what helps small, noisy scans most in our measurements
+    (``experiments/results/m2loc/losses*.md``): one-to-one cliques and up to 3 registration
+    attempts (``one_to_one=True, registration_attempts=3``); ``overrides`` still win."""
     descriptor = DescriptorConfig(
         scale_edges=tuple(scale_edges[:num_scales]), length_feature=length_feature
     )
+    if robust:
+        overrides = {"one_to_one": True, "registration_attempts": 3, **overrides}
     return TripletConfig(descriptor=descriptor, **overrides)
 
 
