@@ -6,7 +6,7 @@ same consistency graphs, time networkx's exact maximum clique (``max_weight_cliq
 exact solver, and count how often the jitted ``max_clique`` reaches the exact size.
 
     JAX_PLATFORMS=cpu python benchmarks/triplet.py --queries 30 [--maps KAIST04] [--stages]
-        [--max-kept 25] [--seed 0]
+        [--max-kept 25] [--seed 0] [--config tripletloc|m2loc3|m2loc3-robust|...]
 
 ``--stages`` adds a per-stage profile of ``register_query`` (each stage jitted on its own, median
 ms over the queries): matching, consistency graph + clique, pose, and the whole jitted call.
@@ -32,6 +32,7 @@ from jaxloc.triplet import (
     load_instance_map,
     load_road_normals,
     localize_scan,
+    m2loc_config,
     match_descriptors,
     max_clique_exact,
     max_clique_with_info,
@@ -42,6 +43,12 @@ from jaxloc.triplet import (
 from jaxloc.triplet._clique import max_clique_symmetric
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "helipr_instance_maps"
+CONFIGS = {
+    "tripletloc": tripletloc_config,
+    "m2loc3": lambda: m2loc_config(3),
+    "m2loc3-robust": lambda: m2loc_config(3, robust=True),
+    "m2loc3-robust-k50": lambda: m2loc_config(3, robust=True, top_k=50),
+}
 
 
 def padded_query(q, config):
@@ -56,7 +63,8 @@ def padded_query(q, config):
 
 
 def graph_of(triplet_map, q, result_config):
-    """Rebuild the final consistency graph of a query (numpy) for the exact solvers."""
+    """Rebuild the final consistency graph of a query (numpy) for the exact solvers (the first
+    registration attempt's graph when the configuration retries)."""
     pts, cls, mask = padded_query(q, result_config)
     d, v = describe_query(
         jnp.asarray(pts), jnp.asarray(cls), jnp.asarray(mask), result_config.descriptor
@@ -64,8 +72,9 @@ def graph_of(triplet_map, q, result_config):
     out = register_query(triplet_map, jnp.asarray(pts), jnp.asarray(cls), d, v, jnp.asarray(mask))
     valid = np.asarray(out.association_valid)
     qa, ma = np.asarray(out.association_query), np.maximum(np.asarray(out.association_map), 0)
+    ends = (qa, ma) if result_config.one_to_one else (None, None)
     adjacency = np.asarray(
-        consistency_graph(pts[qa], np.asarray(triplet_map.points)[ma], valid, 1.0)
+        consistency_graph(pts[qa], np.asarray(triplet_map.points)[ma], valid, 1.0, *ends)
     )
     return adjacency, valid
 
@@ -91,8 +100,15 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--maps", nargs="*", default=None, help="map names (default: all)")
     parser.add_argument("--stages", action="store_true", help="also profile register_query")
+    parser.add_argument(
+        "--config",
+        choices=sorted(CONFIGS),
+        default="tripletloc",
+        help="localization configuration (default tripletloc, as sessions 3-4 measured)",
+    )
     args = parser.parse_args()
-    config = tripletloc_config()
+    config = CONFIGS[args.config]()
+    print(f"configuration: {args.config}")
     print(
         "| map | queries | vertices (median) | associations (median) | desc ms med/p90 | "
         "match+clique+pose ms med/p90 | max_clique ms med | networkx ms med | exact (host) ms med "
