@@ -21,9 +21,24 @@ from pathlib import Path
 import numpy as np
 
 from jaxloc.datasets.outdoor import make_outdoor_world, make_query
-from jaxloc.triplet import build_map, localization_errors, localize_scan, tripletloc_config
+from jaxloc.triplet import (
+    build_map,
+    localization_errors,
+    localize_scan,
+    m2loc_config,
+    tripletloc_config,
+)
 
 OUT = Path(__file__).resolve().parents[1] / "experiments" / "results" / "m2loc"
+#: Configurations, thresholds applied offline (min_inlier_fraction 0 while running); the retries
+#: of "m2loc3-robust" use their own trigger (retry_inlier_fraction 0.5), so the table still holds.
+CONFIGS = {
+    "tripletloc": lambda: tripletloc_config(query_capacity=64, min_inlier_fraction=0.0),
+    "m2loc3": lambda: m2loc_config(3, query_capacity=64, min_inlier_fraction=0.0),
+    "m2loc3-robust": lambda: m2loc_config(
+        3, robust=True, query_capacity=64, min_inlier_fraction=0.0
+    ),
+}
 
 
 def run(triplet_map, world, rng, count, max_kept):
@@ -42,9 +57,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--queries", type=int, default=60)
     parser.add_argument("--max-kept", type=int, default=48)
+    parser.add_argument("--config", choices=sorted(CONFIGS), default="tripletloc")
     args = parser.parse_args()
     home = make_outdoor_world("dense", seed=1001)
-    config = tripletloc_config(query_capacity=64, min_inlier_fraction=0.0)  # thresholds offline
+    config = CONFIGS[args.config]()
+    suffix = (
+        ""
+        if (args.config, args.max_kept) == ("tripletloc", 48)
+        else (f"_{args.config}_kept{args.max_kept}")
+    )
     triplet_map = build_map(home.points, home.labels, config, home.road_normals)
     rng = np.random.default_rng(1000)
     true = run(triplet_map, home, rng, args.queries, args.max_kept)
@@ -56,10 +77,10 @@ def main() -> None:
     )
     correct = (true[:, 2] > 0) & (true[:, 3] < 7.5) & (true[:, 4] < 10)
     lines = [
-        "# Place-not-in-the-map rejection (TripletLoc config, synthetic dense map seed 1001)",
+        f"# Place-not-in-the-map rejection ({args.config}, synthetic dense map seed 1001)",
         "",
         f"Command: `JAX_PLATFORMS=cpu python experiments/m2loc_rejection.py --queries "
-        f"{args.queries} --max-kept {args.max_kept}`",
+        f"{args.queries} --max-kept {args.max_kept} --config {args.config}`",
         "",
         f"True queries: {len(true)} ({int(correct.sum())} correct without rejection); foreign "
         f"queries (dense seed 1002 + sparse seed 1003): {len(foreign)}.",
@@ -87,8 +108,8 @@ def main() -> None:
             p = float(np.mean(accept_true & correct))
             records.append(dict(min_inliers=min_inliers, fraction=fraction, fa=fa, fr=fr, P=p))
             lines.append(f"| {min_inliers} | {fraction:.1f} | {fa:.1%} | {fr:.1%} | {p:.1%} |")
-    (OUT / "rejection.md").write_text("\n".join(lines) + "\n")
-    with open(OUT / "rejection.csv", "w", newline="") as handle:
+    (OUT / f"rejection{suffix}.md").write_text("\n".join(lines) + "\n")
+    with open(OUT / f"rejection{suffix}.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(records[0]))
         writer.writeheader()
         writer.writerows(records)
