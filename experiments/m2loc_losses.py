@@ -169,28 +169,15 @@ def analyse(name, points, labels, normals, args) -> dict:
 def summarize(result: dict) -> dict:
     rows = result["rows"]
 
-    def mean(key):  # queries without a true vertex have no fraction
-        return float(np.nanmean([r[key] for r in rows]))
-
-    def median(key):
-        return float(np.median([r[key] for r in rows]))
-
+    fractions = ("q_desc_s1", "q_desc_any", "m_desc_s1", "top_s1", "top_any", "top_used")
+    sizes = ("vertices", "true", "reached", "true_clique", "clique", "clique_true")
     causes = ["success", "no true clique", "outvoted", "pose", "rejected"]
     return dict(
         map=result["map"],
         queries=len(rows),
-        vertices=median("vertices"),
-        true=median("true"),
-        q_desc_s1=mean("q_desc_s1"),
-        q_desc_any=mean("q_desc_any"),
-        m_desc_s1=mean("m_desc_s1"),
-        top_s1=mean("top_s1"),
-        top_any=mean("top_any"),
-        top_used=mean("top_used"),
-        reached=median("reached"),
-        true_clique=median("true_clique"),
-        clique=median("clique"),
-        clique_true=median("clique_true"),
+        # queries without a true vertex have no fraction (NaN): left out of the means
+        **{key: float(np.nanmean([r[key] for r in rows])) for key in fractions},
+        **{key: float(np.median([r[key] for r in rows])) for key in sizes},
         **{c: sum(r["cause"] == c for r in rows) for c in causes},
     )
 

@@ -369,13 +369,14 @@ def save_scene(scene: SceneGraph, path: str | os.PathLike) -> None:
     write_npz_atomic(path, payload)
 
 
-def load_scene(path: str | os.PathLike) -> SceneGraph:
-    """Load and validate a map written by :func:`save_scene` (never unpickles).
+def read_map_file(path: Path, format_name: str, version: int, what: str) -> dict[str, np.ndarray]:
+    """The arrays of a versioned ``.npz`` map file, loaded without pickle.
 
-    Raises :class:`MapFormatError` for a corrupt, truncated, foreign or newer-version file, or one
-    whose arrays have wrong shapes, dtypes or non-finite values.
+    Raises:
+        FileNotFoundError: no such file.
+        MapFormatError: not a readable ``.npz`` (corrupt, truncated, an object array), another
+            format name (``what`` names the expected kind), or another version.
     """
-    path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as data:
             content = {key: data[key] for key in data.files}
@@ -383,14 +384,25 @@ def load_scene(path: str | os.PathLike) -> SceneGraph:
         raise
     except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as err:
         raise MapFormatError(f"{path}: not a readable jaxloc map ({err})") from err
-    if str(content.get("format", "")) != FORMAT_NAME:
-        raise MapFormatError(f"{path}: not a jaxloc scene graph file")
-    version = content.get("version")
-    if version is None or version.shape != () or int(version) != FORMAT_VERSION:
+    found = content.get("format", np.array(""))
+    if found.shape != () or str(found) != format_name:
+        raise MapFormatError(f"{path}: not a jaxloc {what} file")
+    found = content.get("version")
+    if found is None or found.shape != () or int(found) != version:
         raise MapFormatError(
-            f"{path}: format version {version} is not supported "
-            f"(this jaxloc reads {FORMAT_VERSION})"
+            f"{path}: format version {found} is not supported (this jaxloc reads {version})"
         )
+    return content
+
+
+def load_scene(path: str | os.PathLike) -> SceneGraph:
+    """Load and validate a map written by :func:`save_scene` (never unpickles).
+
+    Raises :class:`MapFormatError` for a corrupt, truncated, foreign or newer-version file, or one
+    whose arrays have wrong shapes, dtypes or non-finite values.
+    """
+    path = Path(path)
+    content = read_map_file(path, FORMAT_NAME, FORMAT_VERSION, "scene graph")
     for key, (dtype, trailing) in _SAVED.items():
         if key not in content:
             raise MapFormatError(f"{path}: missing array '{key}'")

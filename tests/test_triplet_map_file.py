@@ -90,8 +90,8 @@ def bad_files(good_file) -> dict[str, tuple[dict | bytes, str]]:
     scaled = arrays["descriptors"].copy()
     scaled[0] *= 2.0
     return {
-        "truncated": (good_file.read_bytes()[:2000], "not a readable jaxloc map file"),
-        "not a zip": (b"hello", "not a readable jaxloc map file"),
+        "truncated": (good_file.read_bytes()[:2000], "not a readable jaxloc map"),
+        "not a zip": (b"hello", "not a readable jaxloc map"),
         "wrong version": (
             _edited(good_file, version=np.array(TRIPLET_MAP_FORMAT_VERSION + 1)),
             "format version",

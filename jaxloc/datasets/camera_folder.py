@@ -36,6 +36,7 @@ from PIL import Image
 from jaxloc._rigid import rigid_mask
 from jaxloc._textio import data_lines, parse_finite_floats
 from jaxloc.camera import Camera
+from jaxloc.datasets._npy import read_numeric_npy
 from jaxloc.geometry import R_BODY_CAM, ego_motion
 from jaxloc.sequence import Sequence
 
@@ -165,20 +166,13 @@ def _read_depth(path: Path) -> np.ndarray:
 
 
 def _read_embedding(path: Path, dim: int | None, shape) -> np.ndarray:
-    if not path.is_file():
-        raise FileNotFoundError(2, "No such file (the frame's patch embeddings)", str(path))
-    try:
-        array = np.load(path, allow_pickle=False)
-    except ValueError as err:
-        raise ValueError(f"{path}: not a numeric .npy array ({err})") from None
-    if array.ndim != 3 or not np.issubdtype(array.dtype, np.number):
-        raise ValueError(f"{path}: expected (rows, cols, d) numbers, got shape {array.shape}")
+    array = read_numeric_npy(path, 3, "(rows, cols, d)", "the frame's patch embeddings")
     if dim is not None and array.shape[-1] != dim:
         raise ValueError(f"{path}: embeddings have {array.shape[-1]} dims, the map's have {dim}")
     if shape is not None and array.shape != shape:
         raise ValueError(f"{path}: shape {array.shape} differs from the first frame's {shape}")
-    if not np.all(np.isfinite(array)) or np.any(np.linalg.norm(array, axis=-1) == 0):
-        raise ValueError(f"{path}: embeddings contain NaN/inf or zero vectors")
+    if np.any(np.linalg.norm(array, axis=-1) == 0):
+        raise ValueError(f"{path}: embeddings contain zero vectors")
     return array
 
 

@@ -25,6 +25,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from jaxloc._textio import data_lines, parse_finite_floats
+from jaxloc.datasets._npy import read_numeric_npy
 from jaxloc.datasets.reconstruction import LabelledReconstruction, ReconstructionObject
 from jaxloc.scene import SceneGraph
 
@@ -75,19 +76,12 @@ def load_embedding_table(
     path = Path(path)
     if by not in ("label", "object"):
         raise ValueError(f"by must be 'label' or 'object', got {by!r}")
-    if not path.is_file():
-        raise FileNotFoundError(2, "No such file", str(path))
     if path.suffix == ".npy":
-        try:
-            array = np.load(path, allow_pickle=False)
-        except ValueError as err:
-            raise ValueError(f"{path}: not a numeric .npy array ({err})") from None
-        if array.ndim != 2 or not np.issubdtype(array.dtype, np.number):
-            raise ValueError(f"{path}: expected a (K, d) numeric array, got {array.shape}")
-        if not np.all(np.isfinite(array)):
-            raise ValueError(f"{path}: embeddings contain NaN or inf")
+        array = read_numeric_npy(path, 2, "(K, d)", "the embedding table")
         vectors = {str(k): row.astype(np.float64) for k, row in enumerate(array)}
     else:
+        if not path.is_file():
+            raise FileNotFoundError(2, "No such file (the embedding table)", str(path))
         vectors = {}
         for line_number, line in data_lines(path, comments=True):
             key, *values = line.split()

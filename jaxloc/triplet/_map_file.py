@@ -14,7 +14,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import zipfile
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -22,7 +21,7 @@ import numpy as np
 
 from jaxloc._atomic import write_npz_atomic
 from jaxloc.lsq import RobustLoss
-from jaxloc.scene import MapFormatError
+from jaxloc.scene import MapFormatError, read_map_file
 from jaxloc.triplet._descriptors import DescriptorConfig
 from jaxloc.triplet._pipeline import TripletConfig, TripletMap
 
@@ -85,16 +84,6 @@ def save_triplet_map(triplet_map: TripletMap, path: str | os.PathLike) -> None:
     write_npz_atomic(path, arrays)
 
 
-def _read(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {key: data[key] for key in data.files}
-    except FileNotFoundError:
-        raise
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as err:
-        raise MapFormatError(f"{path}: not a readable jaxloc map file ({err})") from err
-
-
 def _check_arrays(path: Path, content: dict[str, np.ndarray], config: TripletConfig) -> None:
     for name, (dtype, shape) in _ARRAYS.items():
         if name not in content:
@@ -153,15 +142,7 @@ def load_triplet_map(path: str | os.PathLike) -> TripletMap:
             configuration, or arrays with wrong dtypes or shapes, NaN/inf or inconsistent values.
     """
     path = Path(path)
-    content = _read(path)
-    if content.get("format", np.array("")).shape != () or str(content["format"]) != FORMAT_NAME:
-        raise MapFormatError(f"{path}: not a jaxloc triplet map file")
-    version = content.get("version")
-    if version is None or version.shape != () or int(version) != FORMAT_VERSION:
-        raise MapFormatError(
-            f"{path}: format version {version} is not supported (this jaxloc reads "
-            f"{FORMAT_VERSION})"
-        )
+    content = read_map_file(path, FORMAT_NAME, FORMAT_VERSION, "triplet map")
     try:
         config = _config_from_dict(TripletConfig, json.loads(str(content["config"])))
     except (KeyError, TypeError, ValueError) as err:  # JSON, unknown fields, config checks

@@ -1,0 +1,29 @@
+"""Reading a user's ``.npy`` array: never unpickled, numeric, finite, of the expected rank."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def read_numeric_npy(path: Path, ndim: int, layout: str, what: str) -> np.ndarray:
+    """The ``ndim``-D finite numeric array in ``path`` (``layout`` names the axes in errors, e.g.
+    ``"(rows, cols, d)"``; ``what`` names the content in the missing-file error).
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: naming the file: not an ``.npy`` of numbers (pickled objects are refused),
+            another rank, NaN or inf.
+    """
+    if not path.is_file():
+        raise FileNotFoundError(2, f"No such file ({what})", str(path))
+    try:
+        array = np.load(path, allow_pickle=False)
+    except ValueError as err:
+        raise ValueError(f"{path}: not a numeric .npy array ({err})") from None
+    if array.ndim != ndim or not np.issubdtype(array.dtype, np.number):
+        raise ValueError(f"{path}: expected a {layout} numeric array, got shape {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{path}: embeddings contain NaN or inf")
+    return array
