@@ -45,7 +45,7 @@ from jaxloc.triplet._clique import max_clique_symmetric
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "helipr_instance_maps"
 CONFIGS = {
     "tripletloc": tripletloc_config,
-    "m2loc3": lambda: m2loc_config(3),
+    "m2loc3": lambda: m2loc_config(3, robust=False),
     "m2loc3-robust": lambda: m2loc_config(3, robust=True),
     "m2loc3-robust-k50": lambda: m2loc_config(3, robust=True, top_k=50),
 }

@@ -99,7 +99,9 @@ def true_clique_size(query, pairs: list[tuple[int, int]], map_points, threshold)
 
 
 def analyse(name, points, labels, normals, args) -> dict:
-    config = m2loc_config(3, query_capacity=CAPACITY, min_inlier_fraction=0.0, top_k=args.k)
+    config = m2loc_config(
+        3, robust=False, query_capacity=CAPACITY, min_inlier_fraction=0.0, top_k=args.k
+    )
     if args.one_to_one:
         config = dataclasses.replace(config, one_to_one=True)
     if args.attempts > 1:

@@ -42,8 +42,8 @@ OUT = ROOT / "experiments" / "results" / "m2loc"
 COMMON = dict(query_capacity=64, min_inlier_fraction=0.0)
 ROWS = {
     "TripletLoc": lambda: tripletloc_config(**COMMON),
-    "Multi-3-En": lambda: m2loc_config(3, **COMMON),
-    "Multi-2-En": lambda: m2loc_config(2, **COMMON),
+    "Multi-3-En": lambda: m2loc_config(3, robust=False, **COMMON),
+    "Multi-2-En": lambda: m2loc_config(2, robust=False, **COMMON),
     # the small-scan options of experiments/m2loc_losses.py (one-to-one cliques, 3 attempts)
     "Multi-3-En-R": lambda: m2loc_config(3, robust=True, **COMMON),
     "Multi-3-En-R-k50": lambda: m2loc_config(3, robust=True, top_k=50, **COMMON),
