@@ -148,6 +148,12 @@ def _add_triplet_options(
         f"{DEFAULT_MIN_CLIQUE})",
     )
     group.add_argument("--no-rsn", action="store_true", help="ignore the road-normal prior")
+    group.add_argument(
+        "--no-robust",
+        action="store_true",
+        help="M2Loc as published: cliques may join associations of one vertex, one registration "
+        "attempt (default: one-to-one cliques, up to 3 attempts)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:

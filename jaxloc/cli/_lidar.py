@@ -150,6 +150,8 @@ def _matching_options(args: argparse.Namespace) -> dict:
     options = {name: value for name, value in given.items() if value is not None}
     if args.no_rsn:
         options["use_rsn"] = False
+    if args.no_robust:
+        options.update(one_to_one=False, registration_attempts=1)
     return options
 
 

@@ -37,6 +37,10 @@ from jaxloc.triplet._io import RoadNormals
 from jaxloc.triplet._matching import consistency_graph, match_descriptors
 from jaxloc.triplet._registration import register
 
+#: Scan vertices that determine a rigid pose (a minimal set), left out of the verification by
+#: ``TripletConfig.verify_beyond_minimal_set``.
+MINIMAL_SET = 3
+
 #: Trace counts of the jitted query functions (tests use them to prove there is no retrace).
 TRACE_COUNTS: collections.Counter[str] = collections.Counter()
 
@@ -57,9 +61,10 @@ class TripletConfig(eqx.Module):
             the scan's vertices that land within ``verify_radius`` of a map vertex of their class
             must reach this (0 disables; see ``experiments/results/m2loc/rejection.md``).
         verify_radius: metres, the verification radius.
-        verify_outside_clique: count only the scan vertices outside the clique in that fraction
-            (independent evidence: the clique's vertices fit the pose by construction, and in a
-            small scan they are most of it). Default False (all vertices, as before).
+        verify_beyond_minimal_set: leave the 3 vertices a pose is determined by out of that
+            fraction, ``(verified - 3) / (n - 3)``: they fit the pose by construction, and in a
+            small scan they are a large share of it (a chance 3-clique in a 6-vertex scan from
+            elsewhere verifies 50 % on its own). Default False (all vertices, as before).
         registration_attempts: cliques and poses tried at most (1: one, TripletLoc's and
             M2Loc's way). While the best pose so far verifies below ``retry_inlier_fraction``,
             another attempt drops the associations that agree with the poses tried (within
@@ -85,7 +90,7 @@ class TripletConfig(eqx.Module):
     min_inliers: int = eqx.field(static=True, default=3)
     min_inlier_fraction: float = eqx.field(static=True, default=0.5)
     verify_radius: float = eqx.field(static=True, default=1.5)
-    verify_outside_clique: bool = eqx.field(static=True, default=False)
+    verify_beyond_minimal_set: bool = eqx.field(static=True, default=False)
     loss: RobustLoss = RobustLoss("gnc_tls", 1.0)
     use_rsn: bool = eqx.field(static=True, default=True)
     rot_delta_deg: float = eqx.field(static=True, default=1.0)
@@ -123,7 +128,7 @@ def m2loc_config(
 ) -> TripletConfig:
     """M2Loc "Multi-n-En": the first ``num_scales`` intervals of ``scale_edges``, angle +
     length-ratio histograms, dynamic clique enhancement with T = 10, and the place-not-in-the-map
-    check on the scan vertices outside the clique (``verify_outside_clique=True``).
+    check on the evidence beyond the pose's minimal set (``verify_beyond_minimal_set=True``).
 
     ``robust`` (default True) adds what helps small, noisy scans most in our measurements
     (``experiments/results/m2loc/losses*.md``, ``table1.md``): one-to-one cliques and up to 3
@@ -132,7 +137,7 @@ def m2loc_config(
     descriptor = DescriptorConfig(
         scale_edges=tuple(scale_edges[:num_scales]), length_feature=length_feature
     )
-    defaults = {"verify_outside_clique": True}
+    defaults = {"verify_beyond_minimal_set": True}
     if robust:
         defaults.update(one_to_one=True, registration_attempts=3)
     return TripletConfig(descriptor=descriptor, **{**defaults, **overrides})
@@ -302,6 +307,7 @@ def verified_fraction(
     map_points: Array,
     map_classes: Array,
     radius: float,
+    discount: int = 0,
 ) -> Array:
     """Fraction of real scan vertices within ``radius`` of a same-class map vertex after ``T``.
 
@@ -310,16 +316,19 @@ def verified_fraction(
         points: (Nq, 3) scan vertices; classes: (Nq,) int32; mask: (Nq,) bool real vertices.
         map_points: (Nm, 3); map_classes: (Nm,) int32.
         radius: metres.
+        discount: vertices taken off both counts (the minimal set that fixed the pose).
 
     Returns:
-        float32 scalar in [0, 1] (0 for an empty mask).
+        float32 scalar in [0, 1]: ``(verified - discount) / (real - discount)``, clipped at 0
+        (0 for no more than ``discount`` real vertices).
     """
     moved = points @ T_map_scan[:3, :3].T + T_map_scan[:3, 3]
     # (Nm, Nq) layout: XLA:CPU reduces the leading axis fastest
     squared = sum((map_points[:, None, c] - moved[None, :, c]) ** 2 for c in range(3))
     squared = jnp.where(map_classes[:, None] == classes[None, :], squared, jnp.inf)
     near = (jnp.min(squared, axis=0) <= radius * radius) & mask
-    return jnp.sum(near) / jnp.maximum(jnp.sum(mask), 1)
+    kept = jnp.maximum(jnp.sum(near) - discount, 0)
+    return kept / jnp.maximum(jnp.sum(mask) - discount, 1)
 
 
 @eqx.filter_jit
@@ -442,18 +451,15 @@ def register_query(
             max_steps=config.solver_steps,
         )
         matrix = solution.pose.as_matrix()
-        checked = mask
-        if config.verify_outside_clique:  # the clique's own vertices fit the pose by construction
-            in_clique = jnp.zeros(nq, bool).at[assoc_query].max(clique)
-            checked = mask & ~in_clique
         fraction = verified_fraction(
             matrix,
             points,
             classes,
-            checked,
+            mask,
             triplet_map.points,
             triplet_map.classes,
             config.verify_radius,
+            discount=MINIMAL_SET if config.verify_beyond_minimal_set else 0,
         )
         return clique, exact, scale, solution.ok, matrix, fraction
 
