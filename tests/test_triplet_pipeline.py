@@ -180,8 +180,20 @@ def test_verified_fraction_matches_numpy():
     moved = scan @ T[:3, :3].T + T[:3, 3]
     distance = np.linalg.norm(moved[:, None] - map_points[None], axis=-1)
     distance[classes[:, None] != map_classes[None, :]] = np.inf
-    expected = np.mean(distance.min(axis=1)[mask] <= 1.5)
+    verified = distance.min(axis=1)[mask] <= 1.5
+    np.testing.assert_allclose(float(got), np.mean(verified), atol=1e-6)
+    # the minimal-set discount: (verified - 3) / (real - 3), clipped at 0
+    close = (map_points[:12] - T[:3, 3]) @ T[:3, :3] + rng.normal(0, 0.3, (12, 3))
+    got = verified_fraction(T, close, classes, mask, map_points, map_classes, 1.5, discount=3)
+    moved = close @ T[:3, :3].T + T[:3, 3]
+    distance = np.linalg.norm(moved[:, None] - map_points[None], axis=-1)
+    distance[classes[:, None] != map_classes[None, :]] = np.inf
+    verified = distance.min(axis=1)[mask] <= 1.5
+    expected = max(verified.sum() - 3, 0) / (mask.sum() - 3)
     np.testing.assert_allclose(float(got), expected, atol=1e-6)
+    assert 0 < expected < np.mean(verified)
+    few = np.arange(12) < 3  # no more real vertices than the discount: nothing beyond it
+    assert float(verified_fraction(T, scan, classes, few, map_points, map_classes, 1.5, 3)) == 0
 
 
 def test_scan_from_another_place_is_rejected(world, triplet_map):
