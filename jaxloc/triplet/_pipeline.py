@@ -11,7 +11,14 @@ Place-not-in-the-map rejection: a scan from elsewhere still yields a (chance) cl
 the pose is verified: the fraction of the scan's vertices that land within ``verify_radius`` of a
 map vertex of their class must reach ``min_inlier_fraction`` (default 0.5: true queries keep about
 80 %, chance poses about 10 %; see ``experiments/results/m2loc/rejection.md``), besides the clique
-holding at least ``min_inliers`` vertices.
+holding at least ``min_inliers`` vertices. M2Loc's configuration (``m2loc_config``) leaves the 3
+vertices that fix the pose out of that fraction (``verify_beyond_minimal_set``): a chance 3-clique
+in a small scan otherwise verifies itself.
+
+Small, noisy scans (``m2loc_config(robust=True)``, the default): one-to-one cliques
+(``one_to_one``) and up to 3 registration attempts (``registration_attempts``), each retry without
+the associations that agree with the poses already rejected; ``experiments/m2loc_losses.py`` shows
+where scan-sized queries lose their true correspondences and what each option changes.
 """
 
 from __future__ import annotations
