@@ -143,3 +143,13 @@ def test_bad_sequences_exit_2_and_write_nothing(sequence_dir, tmp_path, capsys):
         assert expected in err, (name, err)
         assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, name
         assert not out.exists(), name
+
+
+def test_save_map_path_is_checked_before_any_work(sequence_dir, built, tmp_path, capsys):
+    out = tmp_path / "map"
+    argv = ["build-lidar-map", sequence_dir, out, "--save-map", tmp_path / "map.txt"]
+    code, _, err = run(argv, capsys)
+    assert code == 2 and "must end in .npz" in err and not out.exists()
+    argv = ["localize-lidar", built[0], sequence_dir, "--save-map", tmp_path / "map.txt"]
+    code, _, err = run(argv, capsys)
+    assert code == 2 and "must end in .npz" in err

@@ -242,13 +242,10 @@ def open_map(path: Path, args: argparse.Namespace):
     return triplet_map, time.perf_counter() - start
 
 
-def save_map(triplet_map, path: Path) -> None:
-    """:func:`jaxloc.triplet.save_triplet_map` to a ``.npz`` path (atomic write)."""
-    from jaxloc.triplet import save_triplet_map
-
-    if path.suffix != ".npz":
+def check_save_path(path: Path | None) -> None:
+    """Before any work: a ``--save-map`` path must name an ``.npz`` file."""
+    if path is not None and path.suffix != ".npz":
         raise InputError(f"--save-map {path}: the file name must end in .npz")
-    save_triplet_map(triplet_map, path)
 
 
 def expand_scans(paths: Sequence[Path], every: int) -> tuple[list[Path], np.ndarray | None]:
@@ -341,16 +338,18 @@ def _format_record(record: dict) -> str:
 def run_localize_lidar(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
+    from jaxloc.triplet import save_triplet_map
     from jaxloc.triplet._metrics import SUCCESS_RRE_DEG, SUCCESS_RTE_M
 
     check_config_args(args)
+    check_save_path(args.save_map)
     if args.every < 1:
         raise InputError(f"--every must be >= 1, got {args.every}")
     scans, sequence_poses = expand_scans(args.scans, args.every)
     T_gt = sequence_poses if args.gt is None else load_poses(args.gt, len(scans))
     triplet_map, build_s = open_map(args.map, args)
     if args.save_map is not None:
-        save_map(triplet_map, args.save_map)
+        save_triplet_map(triplet_map, args.save_map)
     classes = triplet_map.config.descriptor.classes
     num_vertices, has_rsn = int(triplet_map.points.shape[0]), triplet_map.has_rsn
     say = (lambda _: None) if args.json else print

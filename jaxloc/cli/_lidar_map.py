@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from jaxloc.cli._errors import InputError
-from jaxloc.cli._lidar import describe_map, save_map, triplet_config
+from jaxloc.cli._lidar import check_save_path, describe_map, triplet_config
 
 DESCRIPTION = """\
 Builds a TripletLoc/HeLiPR-format instance map and road-surface-normal map from a labelled
@@ -54,12 +54,12 @@ def run_build_lidar_map(args: argparse.Namespace) -> int:
         build_lidar_maps,
         load_lidar_sequence,
         save_lidar_maps,
+        save_triplet_map,
     )
 
     if args.every < 1:
         raise InputError(f"--every must be >= 1, got {args.every}")
-    if args.save_map is not None and args.save_map.suffix != ".npz":
-        raise InputError(f"--save-map {args.save_map}: the file name must end in .npz")
+    check_save_path(args.save_map)
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise InputError(f"{args.out_dir}: exists and is not a folder")
     start = time.perf_counter()
@@ -77,7 +77,7 @@ def run_build_lidar_map(args: argparse.Namespace) -> int:
         triplet_map = describe_map(instances.points, instances.labels, config, normals, "built")
     save_lidar_maps(args.out_dir, instances, normals)
     if triplet_map is not None:
-        save_map(triplet_map, args.save_map)
+        save_triplet_map(triplet_map, args.save_map)
     counts = ", ".join(
         f"{int(np.sum(instances.labels == c))} x {c}" for c in sorted(set(instances.labels))
     )
