@@ -265,9 +265,10 @@ def expand_scans(paths: Sequence[Path], every: int) -> tuple[list[Path], np.ndar
             sequence = load_lidar_sequence(path, require_poses=False)
         except (ValueError, FileNotFoundError) as error:
             raise InputError(str(error)) from error
-        scans += list(sequence.bins[::every])
+        chosen = list(sequence.bins[::every])
+        scans += chosen
         truth = sequence.T_map_scan
-        poses += [None] * len(sequence.bins[::every]) if truth is None else list(truth[::every])
+        poses += [None] * len(chosen) if truth is None else list(truth[::every])
     known = all(pose is not None for pose in poses)
     return scans, (np.stack(poses) if known else None)
 
