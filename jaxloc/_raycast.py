@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from jaxloc._engines import nearest_triangle, resolve_engine
 from jaxloc.scene import SceneGraph
 
 #: Hits closer than this (metres) are ignored, so a ray leaving a surface does not hit it again.
@@ -325,6 +326,7 @@ def raycast(
     origins: Array,
     directions: Array,
     *,
+    engine: str = "auto",
     packet_size: int = 1,
     chunk_size: int = DEFAULT_CHUNK,
 ) -> RayHit:
@@ -334,15 +336,25 @@ def raycast(
         scene: the map.
         origins: (..., 3) ray origins, world frame, metres.
         directions: (..., 3) ray directions, world frame, any non-zero length (normalised here).
-        packet_size: consecutive rays that traverse the tree together (static). Exact for any
-            value; packets of 8 to 16 pay off when consecutive rays are coherent, e.g. a 2 x 4
-            or 4 x 4 tile of one camera's rays, and 1 suits unrelated rays.
-        chunk_size: rays in flight in the traversal loop (static): ``chunk_size // packet_size``
-            lanes. Both are speed knobs only.
+        engine: which engine finds the hit triangle (static): ``"jax"`` (this module's BVH
+            traversal), ``"embree"``, ``"warp"`` or ``"auto"`` (Embree on a CPU backend, Warp on
+            a GPU backend where installed, else JAX); see :mod:`jaxloc._engines`. ``t``, the
+            barycentric coordinates, the object and the gradients are computed by the same JAX
+            code whatever the engine.
+        packet_size: consecutive rays that traverse the tree together (static, ``"jax"`` engine).
+            Exact for any value; packets of 8 to 16 pay off when consecutive rays are coherent,
+            e.g. a 2 x 4 or 4 x 4 tile of one camera's rays, and 1 suits unrelated rays.
+        chunk_size: rays in flight in the traversal loop (static, ``"jax"`` engine):
+            ``chunk_size // packet_size`` lanes. Both are speed knobs only.
 
     Returns:
         :class:`RayHit` with leading shape ``...``; ``t`` is in metres along the unit direction.
+
+    Raises:
+        ValueError: bad shapes or an unknown engine.
+        ImportError: an engine asked for by name whose package is not installed.
     """
+    engine = resolve_engine(engine)
     origins = jnp.asarray(origins, jnp.float32)
     directions = jnp.asarray(directions, jnp.float32)
     if origins.shape[-1:] != (3,) or directions.shape[-1:] != (3,):
@@ -358,6 +370,10 @@ def raycast(
     num = o.shape[0]
     if num == 0:
         triangle = jnp.zeros((0,), jnp.int32)
+    elif engine != "jax":
+        triangle = nearest_triangle(engine, scene.triangles, o_search, d_search)
+        real = scene.triangle_object[jnp.clip(triangle, 0, scene.triangles.shape[0] - 1)] >= 0
+        triangle = jnp.where((triangle >= 0) & real, triangle, -1)
     else:
         num_packets = -(-num // packet_size)
         pad = num_packets * packet_size - num

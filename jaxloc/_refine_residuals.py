@@ -58,6 +58,8 @@ def associate_depth(
     min_incidence: float | Array = 0.1,
     search_radius: int = 0,
     search_spacing: float | Array = 4.0,
+    *,
+    engine: str = "auto",
 ) -> DepthPlanes:
     """The scene plane each depth pixel is compared with, found by raycasting from ``T_world_cam``.
 
@@ -72,6 +74,7 @@ def associate_depth(
         min_incidence: candidate hits with ``|n . ray| < min_incidence`` are dropped (grazing).
         search_radius: window half-size in candidate rays (static Python int).
         search_spacing: pixels between candidate rays.
+        engine: nearest-hit engine (static; see :func:`jaxloc.raycast`).
     """
     T_world_cam = jax.lax.stop_gradient(T_world_cam)
     steps = jnp.arange(-search_radius, search_radius + 1, dtype=jnp.float32) * search_spacing
@@ -80,7 +83,7 @@ def associate_depth(
     rotation = T_world_cam.rotation().as_matrix()
     origin = T_world_cam.translation()
     rays = camera.directions(candidates) @ rotation.T
-    hit = raycast(scene, origin, rays)
+    hit = raycast(scene, origin, rays, engine=engine)
     normal, corner, plane_ok = _triangle_planes(scene, hit.triangle_id)
     incidence = jnp.abs(jnp.sum(normal * rays, axis=-1))
     usable = hit.hit & plane_ok & (incidence >= min_incidence)
@@ -114,6 +117,8 @@ def depth_residuals(
     min_incidence: float | Array = 0.1,
     search_radius: int = 0,
     search_spacing: float | Array = 4.0,
+    *,
+    engine: str = "auto",
 ) -> tuple[Array, Array]:
     """Point-to-plane residuals of depth pixels against the scene raycast, one frame.
 
@@ -126,13 +131,22 @@ def depth_residuals(
         min_incidence: hits with ``|n . ray| < min_incidence`` are masked (grazing).
         search_radius, search_spacing: the association window (:func:`associate_depth`); 0 uses
             the hit of the pixel's own ray.
+        engine: nearest-hit engine (static; see :func:`jaxloc.raycast`).
 
     Returns:
         residual (N,) float32 metres (``n . (p_world - p_hit)``, 0 where masked) and valid (N,).
         Differentiable in the pose; the hit triangle (the association) is piecewise constant.
     """
     planes = associate_depth(
-        T_world_cam, scene, camera, uv, depth, min_incidence, search_radius, search_spacing
+        T_world_cam,
+        scene,
+        camera,
+        uv,
+        depth,
+        min_incidence,
+        search_radius,
+        search_spacing,
+        engine=engine,
     )
     return point_to_plane(T_world_cam, camera, uv, depth, planes)
 

@@ -99,20 +99,27 @@ def _check_pose(pose: Array, tilt: Array | None, batch: bool) -> None:
 
 
 def render(
-    scene: SceneGraph, pose: Array, camera: Camera, grid: RayGrid, tilt: Array | None = None
+    scene: SceneGraph,
+    pose: Array,
+    camera: Camera,
+    grid: RayGrid,
+    tilt: Array | None = None,
+    *,
+    engine: str = "auto",
 ) -> Render:
     """Render one view from ``pose = (x, y, z, yaw)`` (4,) with an optional known tilt (2,).
 
     Rays follow ``grid`` (see :func:`jaxloc.stride_grid` / :func:`jaxloc.patch_grid`); the frame
     conventions are those of :mod:`jaxloc.geometry`. Differentiable in ``pose`` through ``depth``
-    and ``t`` (the hit triangle itself is piecewise constant).
+    and ``t`` (the hit triangle itself is piecewise constant). ``engine`` (static) picks the
+    nearest-hit engine of :func:`jaxloc.raycast`.
     """
     _check_pose(pose, tilt, batch=False)
     d_cam, d_world = _world_rays(pose, camera, grid, tilt)
     order = _tile_order(grid.shape) if np.prod(grid.shape) == grid.uv.shape[0] else None
     if order is not None:
         d_world = d_world[order]
-    hit = raycast(scene, pose[:3], d_world, packet_size=PACKET_SIZE)
+    hit = raycast(scene, pose[:3], d_world, engine=engine, packet_size=PACKET_SIZE)
     if order is not None:
         inverse = np.argsort(order)
         hit = jax.tree.map(lambda a: a[inverse], hit)
@@ -125,10 +132,13 @@ def render_batch(
     camera: Camera,
     grid: RayGrid,
     tilt: Array | None = None,
+    *,
+    engine: str = "auto",
 ) -> Render:
     """Render N views (``poses`` (N, 4), ``tilt`` None, (2,) shared or (N, 2)) in one raycast.
 
     Returns a :class:`Render` whose arrays have a leading N axis; equal to ``jax.vmap(render)``.
+    ``engine`` (static) picks the nearest-hit engine of :func:`jaxloc.raycast`.
     """
     _check_pose(poses, tilt, batch=True)
     num = poses.shape[0]
@@ -150,7 +160,7 @@ def render_batch(
     d_world = jnp.pad(d_world, ((0, 0), (0, padded - num_rays), (0, 0)), constant_values=1.0)
     origins = jnp.broadcast_to(poses[:, None, :3], d_world.shape)
     origins = jnp.where(jnp.arange(padded)[None, :, None] < num_rays, origins, jnp.nan)
-    hits = raycast(scene, origins, d_world, packet_size=PACKET_SIZE)
+    hits = raycast(scene, origins, d_world, engine=engine, packet_size=PACKET_SIZE)
     inverse = np.argsort(order)
     hits = jax.tree.map(lambda a: a[:, :num_rays][:, inverse], hits)
     return jax.vmap(lambda h: _views(scene, h, d_cam, grid))(hits)

@@ -22,6 +22,7 @@ import numpy as np
 from jax import Array
 
 from jaxloc._convert import as_float32, as_int32
+from jaxloc._engines import check_engine_name
 from jaxloc._render import render_batch
 from jaxloc.camera import Camera, RayGrid
 from jaxloc.particles import (
@@ -35,7 +36,7 @@ from jaxloc.particles import (
 )
 from jaxloc.resample import KLDConfig, kld_resample
 from jaxloc.scene import SceneGraph
-from jaxloc.scores import ObservationConfig, match_patches, particle_log_likelihood
+from jaxloc.scores import ObservationConfig, Scores, match_patches, particle_log_likelihood
 from jaxloc.sequence import Sequence
 
 
@@ -58,6 +59,11 @@ class Region(eqx.Module):
         return Region(bounds[0, :2], bounds[1, :2], bounds[0, 2])
 
 
+#: Rays rendered at once by default (``StepConfig.particle_chunk``): 2^20 rays keep the step's
+#: working set near 1 GiB at any stride (benchmarks/results/filter_profile_cpu.md).
+CHUNK_RAYS = 2**20
+
+
 class StepConfig(eqx.Module):
     """Everything one filter step needs besides the state, the frame and the map.
 
@@ -72,6 +78,12 @@ class StepConfig(eqx.Module):
         inject_every: inject on frames whose index is a positive multiple of this (static).
         heights: (H,) float32 camera heights above ``region.floor_z`` (metres) of the particles
             spread over the region and of injected ones (default the paper's 1.5-1.8 m).
+        engine: nearest-hit engine of the rendering (static; see :func:`jaxloc.raycast`).
+        particle_chunk: particles rendered and scored together (static). Only the chunks that
+            hold active particles are rendered (a loop over them), so the step's time follows the
+            active count and its peak memory ``particle_chunk`` x rays per particle. ``None``
+            picks ``CHUNK_RAYS // rays per particle`` (at least 1); a value >= the particle
+            capacity renders every slot at once (no loop).
     """
 
     camera: Camera
@@ -84,6 +96,20 @@ class StepConfig(eqx.Module):
     inject_count: Array = eqx.field(default=0, converter=as_int32)
     inject_every: int = eqx.field(static=True, default=5)
     heights: Array = eqx.field(default=PAPER_HEIGHTS, converter=as_float32)
+    engine: str = eqx.field(static=True, default="auto")
+    particle_chunk: int | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self) -> None:
+        check_engine_name(self.engine)
+        chunk = self.particle_chunk
+        if chunk is not None and (not isinstance(chunk, int) or chunk < 1):
+            raise ValueError(f"particle_chunk must be a positive int or None, got {chunk!r}")
+
+    def chunk_size(self, capacity: int) -> int:
+        """Particles per chunk for a buffer of ``capacity`` slots (static)."""
+        if self.particle_chunk is not None:
+            return min(self.particle_chunk, capacity)
+        return max(1, min(CHUNK_RAYS // self.grid.uv.shape[0], capacity))
 
 
 class Frame(eqx.Module):
@@ -171,6 +197,68 @@ def frames_on_grid(sequence: Sequence, grid: RayGrid) -> Frame:
     )
 
 
+def _score_poses(poses: Array, frame: Frame, scene: SceneGraph, config: StepConfig) -> Scores:
+    """Render ``poses`` (M, 4) (NaN rows: skipped, their rays miss) and score them: (M,) each."""
+    views = render_batch(scene, poses, config.camera, config.grid, frame.tilt, engine=config.engine)
+    match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
+    h, w = config.grid.shape
+    return jax.vmap(
+        lambda obj, depth, color: particle_log_likelihood(
+            config.observation,
+            match,
+            obj,
+            depth,
+            frame.depth,
+            color.reshape(h, w, 3),
+            frame.rgb,
+        )
+    )(views.patch_object, views.depth, views.color)
+
+
+def score_active(
+    state: ParticleState, frame: Frame, scene: SceneGraph, config: StepConfig
+) -> Scores:
+    """Scores (N,) of the active particles of ``state`` against ``frame``; the scores of inactive
+    slots are meaningless (the caller masks them).
+
+    The active particles are gathered to the front and rendered ``config.chunk_size(N)`` at a
+    time in a ``lax.while_loop`` that stops after the last chunk holding one (a chunk size >= N
+    renders every slot in one call instead).
+    """
+    capacity = state.active.shape[0]
+    chunk = config.chunk_size(capacity)
+    if chunk >= capacity:
+        # Inactive slots cast invalid (NaN) rays, which every engine retires at once.
+        return _score_poses(
+            jnp.where(state.active[:, None], state.poses, jnp.nan), frame, scene, config
+        )
+    num_chunks = -(-capacity // chunk)
+    order = jnp.argsort(~state.active, stable=True)  # active slots first, in slot order
+    order = jnp.pad(order, (0, num_chunks * chunk - capacity))
+    num_active = jnp.sum(state.active)
+    scored = jnp.zeros((num_chunks * chunk,), jnp.float32)
+    init = (jnp.int32(0), Scores(scored, scored, scored, scored))
+
+    def body(carry):
+        i, scores = carry
+        rank = i * chunk + jnp.arange(chunk)
+        slots = jax.lax.dynamic_slice(order, (i * chunk,), (chunk,))
+        poses = jnp.where((rank < num_active)[:, None], state.poses[slots], jnp.nan)
+        found = _score_poses(poses, frame, scene, config)
+        scores = jax.tree.map(
+            lambda all_, part: jax.lax.dynamic_update_slice(all_, part, (i * chunk,)),
+            scores,
+            found,
+        )
+        return i + 1, scores
+
+    _, scores = jax.lax.while_loop(lambda c: c[0] * chunk < num_active, body, init)
+    # Back to slot order (slots past the active ones keep the zeros of ``init``).
+    return jax.tree.map(
+        lambda a: jnp.zeros((capacity,), a.dtype).at[order[:capacity]].set(a[:capacity]), scores
+    )
+
+
 def step(
     key: Array, state: ParticleState, frame: Frame, scene: SceneGraph, config: StepConfig
 ) -> tuple[ParticleState, StepInfo]:
@@ -185,22 +273,7 @@ def step(
     moved = predict(key_motion, state, motion, config.sigma_trans, config.sigma_rot)
     state = jax.tree.map(lambda a, b: jnp.where(frame.index > 0, a, b), moved, state)
 
-    # Inactive slots cast invalid (NaN) rays, which the traversal retires at once.
-    render_poses = jnp.where(state.active[:, None], state.poses, jnp.nan)
-    views = render_batch(scene, render_poses, config.camera, config.grid, frame.tilt)
-    match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
-    h, w = config.grid.shape
-    scores = jax.vmap(
-        lambda obj, depth, color: particle_log_likelihood(
-            config.observation,
-            match,
-            obj,
-            depth,
-            frame.depth,
-            color.reshape(h, w, 3),
-            frame.rgb,
-        )
-    )(views.patch_object, views.depth, views.color)
+    scores = score_active(state, frame, scene, config)
     log_likelihood = jnp.where(state.active, scores.log_likelihood, -jnp.inf)
     state, degenerate = update_weights(state, log_likelihood)
     best_pose, best = mle(state)

@@ -268,12 +268,14 @@ def score_particles(
     frame: Frame,
     poses: Array,
     observation: ObservationConfig,
+    engine: str = "auto",
 ) -> Scores:
     """Render ``poses`` (N, 4) on ``grid`` and score them against ``frame`` (as the filter does).
 
+    ``engine`` (static) is the nearest-hit engine of the rendering (:func:`jaxloc.raycast`).
     Returns :class:`~jaxloc.scores.Scores` with (N,) float32 fields.
     """
-    views = render_batch(scene, poses, camera, grid, frame.tilt)
+    views = render_batch(scene, poses, camera, grid, frame.tilt, engine=engine)
     match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
     h, w = grid.shape
     return jax.vmap(
@@ -296,6 +298,7 @@ def score_window(
     observation: ObservationConfig,
     local_half_width: float | Array = LOCAL_HALF_WIDTH,
     local_yaw_half_range: float | Array = LOCAL_YAW_HALF_RANGE,
+    engine: str = "auto",
 ) -> Windows:
     """One training window (no leading B axis): sample, render and score its particles.
 
@@ -310,6 +313,7 @@ def score_window(
         observation: score variants (its sigma and lambdas do not matter here).
         local_half_width, local_yaw_half_range: the box of the local half of the particles
             (metres, radians; :func:`window_particles`).
+        engine: nearest-hit engine of the rendering (static; :func:`jaxloc.raycast`).
     """
     poses = window_particles(
         key,
@@ -320,9 +324,9 @@ def score_window(
         local_half_width,
         local_yaw_half_range,
     )
-    scores = jax.vmap(lambda frame, p: score_particles(scene, camera, grid, frame, p, observation))(
-        frames, poses
-    )
+    scores = jax.vmap(
+        lambda frame, p: score_particles(scene, camera, grid, frame, p, observation, engine)
+    )(frames, poses)
     return _window(scores, poses, poses_gt, jnp.ones(num_particles, bool))
 
 
@@ -351,6 +355,7 @@ def sequence_windows(
     observation: ObservationConfig | None = None,
     local_half_width: float = LOCAL_HALF_WIDTH,
     local_yaw_half_range: float = LOCAL_YAW_HALF_RANGE,
+    engine: str = "auto",
 ) -> Windows:
     """Training windows of one sequence (host side): one per start frame, stacked on B.
 
@@ -365,6 +370,7 @@ def sequence_windows(
         local_half_width, local_yaw_half_range: the box (metres, radians) around the window's first
             true pose that the local half of the particles is drawn from
             (:func:`window_particles`).
+        engine: nearest-hit engine of the rendering (:func:`jaxloc.raycast`).
     """
     observation = ObservationConfig() if observation is None else observation
     num_frames = sequence.num_frames
@@ -393,6 +399,7 @@ def sequence_windows(
             observation,
             local_half_width,
             local_yaw_half_range,
+            engine,
         )
         parts.append(jax.tree.map(lambda a: a[None], window))
     return concat_windows(parts)
@@ -408,6 +415,7 @@ def score_particle_set(
     valid: Array,
     pose_gt: Array,
     observation: ObservationConfig,
+    engine: str = "auto",
 ) -> Windows:
     """A one-frame window (K = 1, no leading B axis) of a given particle set.
 
@@ -419,10 +427,11 @@ def score_particle_set(
         valid: (N,) bool, which particles count.
         pose_gt: (4,) the frame's true pose.
         observation: score variants (its sigma and lambdas do not matter here).
+        engine: nearest-hit engine of the rendering (static; :func:`jaxloc.raycast`).
     """
     valid = valid & jnp.all(jnp.isfinite(poses), axis=-1)
     poses = jnp.where(valid[:, None], poses, jnp.asarray(pose_gt, jnp.float32))
-    scores = score_particles(scene, camera, grid, frame, poses, observation)
+    scores = score_particles(scene, camera, grid, frame, poses, observation, engine)
     one_frame = jax.tree.map(lambda a: a[None], (scores, poses, pose_gt))
     return _window(*one_frame, valid)
 
@@ -435,6 +444,7 @@ def filter_windows(
     particle_weights: Array,
     strides: tuple[int, ...],
     observation: ObservationConfig | None = None,
+    engine: str = "auto",
 ) -> Windows:
     """One-frame windows of the filter's own particle sets (host side), ``R * T`` on B.
 
@@ -453,6 +463,7 @@ def filter_windows(
         strides: the R ray strides of the run (``SG2LocConfig.strides``).
         observation: score variants (default :class:`~jaxloc.scores.ObservationConfig`); use the
             run's (``use_depth`` / ``use_color`` as it used them).
+        engine: nearest-hit engine of the rendering (:func:`jaxloc.raycast`).
     """
     observation = ObservationConfig() if observation is None else observation
     num_frames = sequence.num_frames
@@ -490,6 +501,7 @@ def filter_windows(
                 jnp.asarray(particle_weights[r, t] > 0),
                 poses_gt[t],
                 observation,
+                engine,
             )
             parts.append(jax.tree.map(lambda a: a[None], window))
     return concat_windows(parts)

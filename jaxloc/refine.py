@@ -82,6 +82,7 @@ import jaxlie
 import numpy as np
 from jax import Array
 
+from jaxloc._engines import check_engine_name
 from jaxloc._refine_residuals import (
     DepthPlanes,
     associate_depth,
@@ -178,6 +179,8 @@ class RefineConfig(eqx.Module):
             experiments/results/refine/convergence.md).
         max_steps: optimiser steps per round (static).
         method: "lm" (Levenberg-Marquardt) or "gn" (Gauss-Newton) (static).
+        engine: nearest-hit engine of the depth association (static; see
+            :func:`jaxloc.raycast`).
     """
 
     residuals: ResidualKind = eqx.field(static=True, default="depth")
@@ -202,8 +205,10 @@ class RefineConfig(eqx.Module):
     rounds: int = eqx.field(static=True, default=16)
     max_steps: int = eqx.field(static=True, default=20)
     method: Literal["lm", "gn"] = eqx.field(static=True, default="lm")
+    engine: str = eqx.field(static=True, default="auto")
 
     def __check_init__(self) -> None:
+        check_engine_name(self.engine)
         if self.residuals not in ("depth", "reprojection", "both"):
             raise ValueError(
                 f"residuals must be 'depth', 'reprojection' or 'both', got {self.residuals!r}"
@@ -323,6 +328,7 @@ def _associate_all(T_anchor, T_rel, scene, camera, obs: Observations, config) ->
             config.min_incidence,
             config.search_radius,
             config.search_spacing,
+            engine=config.engine,
         )
     )(poses.parameters(), obs.depth)
 

@@ -21,6 +21,7 @@ from jax.sharding import Mesh
 from tqdm.auto import tqdm
 
 from jaxloc._convert import as_float32
+from jaxloc._engines import check_engine_name
 from jaxloc.camera import stride_grid
 from jaxloc.filter import Region, StepConfig, StepInfo, frames_on_grid, run_pass, step
 from jaxloc.geometry import uncompose_yaw
@@ -50,6 +51,10 @@ class SG2LocConfig(eqx.Module):
         heights: camera heights above the region's floor (metres) of round 0's particles and of
             injected ones (static; default the paper's 1.5, 1.6, 1.7, 1.8 m). Set them near the
             query camera's real height (e.g. 1.2-1.5 m for a hand-held ScanNet camera).
+        engine: nearest-hit engine of the rendering (static; "auto", "jax", "embree" or "warp",
+            see :func:`jaxloc.raycast`).
+        particle_chunk: particles rendered together (static; ``StepConfig.particle_chunk``:
+            None sizes chunks to ``jaxloc.filter.CHUNK_RAYS`` rays).
     """
 
     capacity: int = eqx.field(static=True, default=2500)
@@ -66,8 +71,14 @@ class SG2LocConfig(eqx.Module):
     heights: tuple[float, ...] = eqx.field(
         static=True, default=PAPER_HEIGHTS, converter=lambda h: tuple(float(x) for x in h)
     )
+    engine: str = eqx.field(static=True, default="auto")
+    particle_chunk: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
+        check_engine_name(self.engine)
+        chunk = self.particle_chunk
+        if chunk is not None and (not isinstance(chunk, int) or chunk < 1):
+            raise ValueError(f"particle_chunk must be a positive int or None, got {chunk!r}")
         if not isinstance(self.capacity, int) or self.capacity < 1:
             raise ValueError(f"capacity must be a positive int, got {self.capacity!r}")
         if len(self.strides) < 1 or any(int(s) < 1 for s in self.strides):
@@ -226,6 +237,8 @@ def localize(
             inject_count=config.inject_count,
             inject_every=config.inject_every,
             heights=config.heights,
+            engine=config.engine,
+            particle_chunk=config.particle_chunk,
         )
         init_args = (
             None if r == 0 else (centre, config.box_half_widths[r - 1], config.yaw_half_range)

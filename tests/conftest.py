@@ -41,9 +41,11 @@ jax.config.update(
 NUM_RAYS = 2048
 
 #: Jitted entry points shared by all test modules: one compilation per (shape, capacity).
-cast = jax.jit(functools.partial(raycast, packet_size=1))
-cast16 = jax.jit(functools.partial(raycast, packet_size=16))
-cast64 = jax.jit(functools.partial(raycast, packet_size=64))
+#: ``cast*`` test the pure-JAX engine (the reference traversal); tests/test_engines.py checks the
+#: other engines against the same references.
+cast = jax.jit(functools.partial(raycast, engine="jax", packet_size=1))
+cast16 = jax.jit(functools.partial(raycast, engine="jax", packet_size=16))
+cast64 = jax.jit(functools.partial(raycast, engine="jax", packet_size=64))
 render_jit = jax.jit(render)
 render_batch_jit = jax.jit(render_batch)
 

@@ -274,6 +274,33 @@ def test_step_does_not_retrace(initial, frames, scene, other_scene, step_config)
     assert_no_nan((on_other, other_info), "step on the second map")
 
 
+@pytest.mark.slow
+def test_chunked_step_and_every_engine_equal_the_one_call_step(
+    initial, after_first, frames, scene, step_config
+):
+    """Rendering the active particles 24 at a time (a loop over the chunks that hold them: 11 for
+    the 256 initial particles, the last one partly empty; 2 for the 32 left after the first
+    step), or with the pure-JAX engine instead of the default one, gives the step of one render
+    call over every slot: same counts, same MLE, same weights."""
+    assert step_config.chunk_size(STEP_CAPACITY) == STEP_CAPACITY  # the default: one call
+    chunked = jax.jit(step)
+    variants = [
+        dataclasses.replace(step_config, particle_chunk=24),
+        dataclasses.replace(step_config, engine="jax"),
+        dataclasses.replace(step_config, particle_chunk=24, engine="jax"),
+    ]
+    moved, _ = after_first
+    assert 24 < int(jnp.sum(moved.active)) < STEP_CAPACITY  # a partly active buffer
+    for state, t in ((initial, 0), (moved, 1)):
+        key, frame = jax.random.key(60 + t), frame_at(frames, t)
+        one_call = STEP(key, state, frame, scene, step_config)
+        for variant in variants:
+            new, info = chunked(key, state, frame, scene, variant)
+            np.testing.assert_array_equal(info.num_particles, one_call[1].num_particles)
+            np.testing.assert_array_equal(info.mle, one_call[1].mle)
+            assert_trees_close((new, info), one_call, rtol=1e-5, atol=1e-6)
+
+
 def test_run_pass_equals_stepping_frame_by_frame(initial, frames, scene, step_config):
     key = jax.random.key(40)
     final, infos = RUN_PASS(key, initial, frames, scene, step_config)

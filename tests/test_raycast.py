@@ -5,6 +5,7 @@ consistency and gradients.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import importlib.util
 
@@ -32,6 +33,8 @@ from jaxloc.bvh import build_bvh
 from jaxloc.scene import MEDIAN_DEPTH, SceneGraph
 
 rc = importlib.import_module("jaxloc._raycast")
+#: This module tests the pure-JAX engine (tests/test_engines.py compares the others with it).
+jax_raycast = functools.partial(rc.raycast, engine="jax")
 
 MIN_AGREEMENT = 0.999
 T_TOL = 1e-4  # metres
@@ -340,7 +343,7 @@ def _assert_same_hits(a, b, scene, rays):
 
 
 def test_jit_equals_eager(scene, rays, hits):
-    _assert_same_hits(rc.raycast(scene, *rays), hits, scene, rays)
+    _assert_same_hits(jax_raycast(scene, *rays), hits, scene, rays)
 
 
 def test_vmap_equals_unbatched(scene, rays, hits):
@@ -348,7 +351,7 @@ def test_vmap_equals_unbatched(scene, rays, hits):
     single call is the loop over batches, concatenated)."""
     o = rays[0].reshape(4, NUM_RAYS // 4, 3)
     d = rays[1].reshape(4, NUM_RAYS // 4, 3)
-    vm = jax.jit(jax.vmap(rc.raycast, in_axes=(None, 0, 0)))(scene, o, d)
+    vm = jax.jit(jax.vmap(jax_raycast, in_axes=(None, 0, 0)))(scene, o, d)
     flat = jax.tree.map(lambda x: np.asarray(x).reshape((NUM_RAYS,) + x.shape[2:]), vm)
     _assert_same_hits(flat, hits, scene, rays)
 
@@ -366,7 +369,7 @@ def _pick_clean_rays(scene, rays, hits, count):
 
 
 def _sum_t(scene, o, d):
-    t = rc.raycast(scene, o, d).t
+    t = jax_raycast(scene, o, d).t
     return jnp.sum(jnp.where(jnp.isfinite(t), t, 0.0))
 
 

@@ -1,0 +1,232 @@
+"""The nearest-hit engines of :func:`jaxloc.raycast` ("jax", "embree", "warp"): each installed one
+against the float64 brute force and against the others, gradients, jit/vmap, traces, invalid rays,
+map edits (the acceleration-structure cache) and the errors for unknown or missing engines.
+
+Optional engines are skipped when their package is absent; CI installs both (embreex is a default
+dependency on x86-64, warp-lang comes with the test extra and runs on its CPU backend).
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import NUM_RAYS, brute_force, random_rays, random_scene
+
+from jaxloc import Camera, raycast, render_batch, stride_grid
+from jaxloc.filter import StepConfig
+from jaxloc.refine import RefineConfig
+from jaxloc.sg2loc import SG2LocConfig
+
+engines = importlib.import_module("jaxloc._engines")
+
+OPTIONAL = ("embree", "warp")
+INSTALLED = ["jax"] + [e for e in OPTIONAL if engines.is_installed(e)]
+ALL = [
+    pytest.param(e, marks=pytest.mark.skipif(e not in INSTALLED, reason=f"{e} not installed"))
+    for e in ("jax",) + OPTIONAL
+]
+MIN_AGREEMENT = 0.999
+T_TOL = 1e-4  # metres
+
+
+@functools.cache
+def _cast(engine: str):
+    """One jitted raycast per engine, shared by every test of this module."""
+    return jax.jit(functools.partial(raycast, engine=engine))
+
+
+def _np(tree):
+    return jax.tree.map(np.asarray, tree)
+
+
+@pytest.fixture(scope="module")
+def second_scene():
+    """Another random scene (other objects, other capacity), and its rays and brute force."""
+    scene = random_scene(5, num_objects=30)
+    rays = random_rays(scene, 6)
+    return scene, rays, brute_force(np.asarray(scene.triangles)[: scene.num_triangles], *rays)
+
+
+def _steep(scene, rays, triangle):
+    """Rays whose hit triangle is met at |cos| > 0.05 (not grazing), float64."""
+    tris = np.asarray(scene.triangles, np.float64)[np.maximum(triangle, 0)]
+    normal = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    d = rays[1] / np.linalg.norm(rays[1], axis=1, keepdims=True)
+    return (triangle >= 0) & (np.abs(np.sum(normal * d, 1)) > 0.05)
+
+
+def _check_against_brute_force(scene, rays, reference, hits):
+    t_ref, tri_ref, _ = reference
+    obj_ref = np.where(tri_ref >= 0, np.asarray(scene.triangle_object)[tri_ref], -1)
+    assert 0.4 < hits.hit.mean() < 0.9
+    assert (hits.hit == (tri_ref >= 0)).mean() >= MIN_AGREEMENT
+    assert (hits.object_id == obj_ref).mean() >= MIN_AGREEMENT
+    assert (hits.triangle_id == tri_ref).mean() >= MIN_AGREEMENT
+    same = (hits.triangle_id == tri_ref) & _steep(scene, rays, tri_ref)
+    assert same.mean() > 0.4
+    assert np.max(np.abs(hits.t[same] - t_ref[same])) <= T_TOL
+
+
+@pytest.mark.parametrize("engine", ALL)
+def test_engine_matches_float64_brute_force(engine, scene, rays, reference, second_scene):
+    _check_against_brute_force(scene, rays, reference, _np(_cast(engine)(scene, *rays)))
+    other, other_rays, other_reference = second_scene
+    hits = _np(_cast(engine)(other, *other_rays))
+    _check_against_brute_force(other, other_rays, other_reference, hits)
+
+
+@pytest.mark.parametrize("engine", ALL)
+def test_engine_agrees_with_the_jax_engine(engine, scene, rays, hits):
+    """Same triangle on (nearly) every ray, and then the same t and barycentric coordinates: they
+    come from the same JAX code whichever engine chose the triangle."""
+    ours = _np(_cast(engine)(scene, *rays))
+    agree = ours.triangle_id == hits.triangle_id
+    assert agree.mean() >= MIN_AGREEMENT
+    np.testing.assert_allclose(ours.t[agree & ours.hit], hits.t[agree & hits.hit], rtol=1e-6)
+    np.testing.assert_allclose(ours.barycentric[agree], hits.barycentric[agree], atol=1e-6)
+    np.testing.assert_array_equal(ours.object_id[agree], hits.object_id[agree])
+
+
+@pytest.mark.parametrize("engine", ALL)
+def test_engine_jit_equals_eager(engine, scene, rays):
+    eager = _np(raycast(scene, *rays, engine=engine))
+    jitted = _np(_cast(engine)(scene, *rays))
+    np.testing.assert_array_equal(eager.triangle_id, jitted.triangle_id)
+    np.testing.assert_allclose(eager.t[eager.hit], jitted.t[jitted.hit], rtol=1e-6)
+
+
+@pytest.mark.parametrize("engine", ALL)
+def test_engine_vmap_equals_loop(engine, scene, rays):
+    """vmap over ray batches (the map shared) and over stacked maps (rays and map batched)."""
+    o = rays[0][:1024].reshape(4, 256, 3)
+    d = rays[1][:1024].reshape(4, 256, 3)
+    cast = _cast(engine)
+    batched = _np(jax.jit(jax.vmap(cast, in_axes=(None, 0, 0)))(scene, o, d))
+    for i in range(4):
+        np.testing.assert_array_equal(
+            batched.triangle_id[i], _np(cast(scene, o[i], d[i])).triangle_id
+        )
+    other = random_scene(5, num_objects=30, capacity=scene.capacity)
+    maps = jax.tree.map(lambda a, b: jnp.stack([a, b]), scene, other)
+    both = _np(jax.jit(jax.vmap(cast))(maps, o[:2], d[:2]))
+    np.testing.assert_array_equal(both.triangle_id[0], _np(cast(scene, o[0], d[0])).triangle_id)
+    np.testing.assert_array_equal(both.triangle_id[1], _np(cast(other, o[1], d[1])).triangle_id)
+    assert not np.array_equal(both.triangle_id[0], both.triangle_id[1])
+
+
+@pytest.mark.parametrize("engine", ALL)
+def test_one_trace_per_shape_and_a_new_map_is_not_stale(engine, scene, rays):
+    """A second map of the same capacity reuses the compiled function (one trace), and its hits are
+    its own: the engine's cached structure is keyed by the triangles, not by the shape."""
+    traces = []
+
+    @jax.jit
+    def nearest(s, o, d):
+        traces.append(1)
+        return raycast(s, o, d, engine=engine).triangle_id
+
+    other = random_scene(11, num_objects=30, capacity=scene.capacity)
+    first = np.asarray(nearest(scene, *rays))
+    second = np.asarray(nearest(other, *rays))
+    again = np.asarray(nearest(scene, *rays))
+    assert len(traces) == 1
+    np.testing.assert_array_equal(first, again)
+    reference = brute_force(np.asarray(other.triangles)[: other.num_triangles], *rays)[1]
+    assert (second == reference).mean() >= MIN_AGREEMENT
+    assert (first != second).mean() > 0.3
+
+
+@pytest.mark.parametrize("engine", [e for e in ALL if e.values[0] != "jax"])
+def test_moved_triangles_are_hit_where_they_are_now(engine, scene, rays):
+    """Editing a map's triangles in place (same shape) gives a new fingerprint, so the optional
+    engines rebuild their structure instead of answering from the old one (the "jax" engine
+    traverses the BVH, which a user must rebuild with :meth:`SceneGraph.from_meshes`)."""
+    cast = _cast(engine)
+    before = _np(cast(scene, *rays))
+    moved = eqx.tree_at(lambda s: s.triangles, scene, scene.triangles + jnp.array([0.7, 0, 0]))
+    after = _np(cast(moved, *rays))
+    reference = brute_force(np.asarray(moved.triangles)[: moved.num_triangles], *rays)[1]
+    assert (after.triangle_id == reference).mean() >= MIN_AGREEMENT
+    assert (after.triangle_id != before.triangle_id).mean() > 0.3
+
+
+@pytest.mark.parametrize("engine", ALL)
+def test_invalid_rays_miss_for_every_engine(engine, scene, rays, hits):
+    o, d = rays[0].copy(), rays[1].copy()
+    bad = np.arange(0, NUM_RAYS, 5)
+    d[bad[0::4]] = 0.0
+    d[bad[1::4]] = [np.nan, 1.0, 0.0]
+    o[bad[2::4]] = [0.0, np.inf, 0.0]
+    o[bad[3::4]] = np.nan
+    out = _np(_cast(engine)(scene, o, d))
+    assert np.all(out.triangle_id[bad] == -1) and not np.any(out.hit[bad])
+    assert np.all(out.t[bad] == np.inf) and np.all(out.barycentric[bad] == 0)
+    assert not np.any(np.isnan(out.t)) and not np.any(np.isnan(out.barycentric))
+    good = np.setdiff1d(np.arange(NUM_RAYS), bad)
+    assert (out.triangle_id[good] == hits.triangle_id[good]).mean() >= MIN_AGREEMENT
+
+
+@pytest.mark.parametrize("engine", ALL)
+def test_depth_gradients_w_r_t_the_pose_are_the_same_for_every_engine(engine, room_scene):
+    """d(sum of depths)/d(x, y, z, yaw) of a rendered view: equal to the "jax" engine's and to
+    central finite differences (the engine only picks the triangle)."""
+    camera = Camera.from_fov(40, 30, 60.0)
+    grid = stride_grid(camera, 4)
+    poses = jnp.array([[0.3, -0.4, 1.5, 0.7], [-1.0, 0.5, 1.2, 2.5]])
+
+    def total_depth(p, engine):
+        depth = render_batch(room_scene, p, camera, grid, engine=engine).depth
+        return jnp.sum(jnp.where(jnp.isfinite(depth), depth, 0.0))
+
+    grad = jax.jit(jax.grad(total_depth), static_argnums=1)
+    ours = np.asarray(grad(poses, engine))
+    np.testing.assert_allclose(ours, np.asarray(grad(poses, "jax")), rtol=1e-5, atol=1e-4)
+    value = jax.jit(total_depth, static_argnums=1)
+    step = 1e-3
+    for i, j in [(0, 0), (0, 1), (1, 2), (1, 3)]:
+        delta = jnp.zeros_like(poses).at[i, j].set(step)
+        fd = (value(poses + delta, engine) - value(poses - delta, engine)) / (2 * step)
+        np.testing.assert_allclose(ours[i, j], fd, rtol=2e-2, atol=0.5)
+
+
+def test_fingerprint_is_exact_and_sensitive(scene):
+    triangles = scene.triangles
+    key = np.asarray(engines.fingerprint(triangles))
+    np.testing.assert_array_equal(key, np.asarray(jax.jit(engines.fingerprint)(triangles)))
+    flipped = np.asarray(triangles).copy().view(np.uint32)
+    flipped[3, 1, 2] ^= 1  # one bit of one coordinate
+    other = np.asarray(engines.fingerprint(jnp.asarray(flipped.view(np.float32))))
+    assert key.dtype == np.uint32 and key.shape == (2,)
+    assert np.all(key != other)
+
+
+def test_unknown_and_missing_engines_raise_clear_errors(scene, rays, monkeypatch):
+    with pytest.raises(ValueError, match="engine must be one of"):
+        raycast(scene, *rays, engine="optix")
+    for make in (StepConfig, SG2LocConfig, RefineConfig):
+        with pytest.raises(ValueError, match="engine must be one of"):
+            if make is StepConfig:
+                StepConfig(None, None, None, None, None, engine="embre")
+            else:
+                make(engine="embre")
+    monkeypatch.setattr(engines, "is_installed", lambda engine: False)
+    with pytest.raises(ImportError, match="embreex"):
+        raycast(scene, *rays, engine="embree")
+    with pytest.raises(ImportError, match="warp-lang"):
+        raycast(scene, *rays, engine="warp")
+    assert engines.resolve_engine("auto") == "jax"  # "auto" falls back, never raises
+    fallback = _np(raycast(scene, rays[0][:64], rays[1][:64], engine="auto"))
+    expected = _np(raycast(scene, rays[0][:64], rays[1][:64], engine="jax"))
+    np.testing.assert_array_equal(fallback.triangle_id, expected.triangle_id)
+
+
+def test_auto_picks_embree_on_a_cpu_backend_where_installed():
+    expected = "embree" if engines.is_installed("embree") else "jax"
+    assert jax.default_backend() != "cpu" or engines.resolve_engine("auto") == expected
