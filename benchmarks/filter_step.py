@@ -16,13 +16,16 @@ through the frames, blocking on every result. Times are wall clock AND process C
 ``resource.getrusage(RUSAGE_SELF).ru_maxrss`` of the child and, where the backend reports it,
 ``jax.devices()[0].memory_stats()['peak_bytes_in_use']``. Round 0 starts from the paper's floor
 initialisation; later rounds from the paper's boxes around the true first pose (half-widths 0.8
-and 0.4 m). Every particle slot is rendered whether active or not, so the cost scales with the
-capacity (``--particles``) times the rays per particle; with ``--particles`` or the image size
-reduced, the table adds a column scaled linearly to the full size, labelled as an estimate.
+and 0.4 m). Only the active particles are rendered, in chunks of ``--chunk`` particles (default:
+``jaxloc.filter.CHUNK_RAYS`` rays per chunk; ``--chunk 0`` renders every slot in one call, the
+behaviour before chunking), with the nearest-hit engine ``--engine``. With ``--particles`` or the
+image size reduced, the table adds a column scaled linearly to the full size, labelled as an
+estimate.
 
     python benchmarks/filter_step.py                                   # the full benchmark
     python benchmarks/filter_step.py --particles 200 --frames 2        # a quick run
     python benchmarks/filter_step.py --cases stride --strides 20       # the coarse pass only
+    python benchmarks/filter_step.py --engine jax --chunk 0            # the old one-call step
 """
 
 from __future__ import annotations
@@ -58,6 +61,15 @@ def parse_args(argv=None) -> argparse.Namespace:
         help="comma-separated: 'stride' (every stride of --strides) and/or 'patch' (16x9 grid)",
     )
     parser.add_argument("--seed", type=int, default=0, help="synthetic room / episode seed")
+    parser.add_argument(
+        "--engine", default="auto", help="nearest-hit engine: auto, jax, embree or warp"
+    )
+    parser.add_argument(
+        "--chunk",
+        type=int,
+        default=None,
+        help="particles per render chunk (default: by CHUNK_RAYS; 0: every slot in one call)",
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--data", default=None, help=argparse.SUPPRESS)
     return parser.parse_args(argv)
@@ -163,6 +175,8 @@ def run_case(args: argparse.Namespace) -> dict:
         observation=ObservationConfig(),
         kld=KLDConfig(),
         region=region,
+        engine=args.engine,
+        particle_chunk=args.particles if args.chunk == 0 else args.chunk,
     )
     key = jax.random.key(0)
     round_index = strides.index(int(value)) if kind == "stride" else 0
@@ -191,6 +205,7 @@ def run_case(args: argparse.Namespace) -> dict:
     return {
         "case": args.child,
         "rays_per_particle": int(grid.uv.shape[0]),
+        "chunk": config.chunk_size(args.particles),
         "active_at_start": active_at_start,
         "compile_wall": compile_wall,
         "compile_cpu": compile_cpu,
@@ -290,6 +305,8 @@ def report(args, data_info: dict, results: list[dict]) -> str:
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     notes = [
         "",
+        f"engine {args.engine}; particles per render chunk: "
+        + ", ".join(f"{r['case']} {r['chunk']}" for r in results),
         f"device: {results[0]['device'] if results else '?'}; {os.cpu_count()} CPUs; "
         f"load average {load}; python {platform.python_version()}",
         f"episode: seed {args.seed}, {args.frames} frames at {args.width}x{args.height}, room "
@@ -334,8 +351,10 @@ def main(argv=None) -> None:
         results = []
         for case in cases:
             command = [sys.executable, __file__, "--child", case, "--data", folder]
-            for name in ("particles", "frames", "width", "height", "strides", "seed"):
+            for name in ("particles", "frames", "width", "height", "strides", "seed", "engine"):
                 command += [f"--{name}", str(getattr(args, name))]
+            if args.chunk is not None:
+                command += ["--chunk", str(args.chunk)]
             output = subprocess.run(command, capture_output=True, text=True, check=False)
             lines = [x for x in output.stdout.splitlines() if x.startswith("RESULT ")]
             if output.returncode != 0 or not lines:

@@ -321,6 +321,37 @@ def _differentiable_hit(scene: SceneGraph, origin, direction, triangle):
     return t, bary
 
 
+def hit_triangles(
+    scene: SceneGraph,
+    origins: Array,
+    directions: Array,
+    engine: str,
+    packet_size: int = 1,
+    chunk_size: int = DEFAULT_CHUNK,
+) -> Array:
+    """The engine's hit search alone: nearest triangle (R,) int32 of each ray, -1 on a miss.
+
+    ``origins`` (R, 3) are NaN for rays that must miss, ``directions`` (R, 3) unit vectors (both
+    without gradient); ``engine`` is resolved ("jax", "embree" or "warp"). A padding triangle is
+    never reported.
+    """
+    num = origins.shape[0]
+    if num == 0:
+        return jnp.zeros((0,), jnp.int32)
+    if engine != "jax":
+        triangle = nearest_triangle(engine, scene.triangles, origins, directions)
+        real = scene.triangle_object[jnp.clip(triangle, 0, scene.triangles.shape[0] - 1)] >= 0
+        return jnp.where((triangle >= 0) & real, triangle, -1)
+    num_packets = -(-num // packet_size)
+    pad = num_packets * packet_size - num
+    o_packets = jnp.pad(origins, ((0, pad), (0, 0)), constant_values=jnp.nan)
+    d_packets = jnp.pad(directions, ((0, pad), (0, 0)), constant_values=1.0)
+    o_packets = o_packets.reshape(num_packets, packet_size, 3)
+    d_packets = d_packets.reshape(num_packets, packet_size, 3)
+    leaf = _trace_packets(scene, o_packets, d_packets, chunk_size // packet_size)
+    return _leaf_triangle(scene, origins, directions, leaf.reshape(-1)[:num])
+
+
 def raycast(
     scene: SceneGraph,
     origins: Array,
@@ -366,24 +397,9 @@ def raycast(
     o = jnp.broadcast_to(origins, shape).reshape(-1, 3)
     d, ok = _safe_normalize(jnp.broadcast_to(directions, shape).reshape(-1, 3))
     o_search = jax.lax.stop_gradient(jnp.where(ok[:, None], o, jnp.nan))
-    d_search = jax.lax.stop_gradient(d)
-    num = o.shape[0]
-    if num == 0:
-        triangle = jnp.zeros((0,), jnp.int32)
-    elif engine != "jax":
-        triangle = nearest_triangle(engine, scene.triangles, o_search, d_search)
-        real = scene.triangle_object[jnp.clip(triangle, 0, scene.triangles.shape[0] - 1)] >= 0
-        triangle = jnp.where((triangle >= 0) & real, triangle, -1)
-    else:
-        num_packets = -(-num // packet_size)
-        pad = num_packets * packet_size - num
-        o_packets = jnp.pad(o_search, ((0, pad), (0, 0)), constant_values=jnp.nan)
-        d_packets = jnp.pad(d_search, ((0, pad), (0, 0)), constant_values=1.0)
-        o_packets = o_packets.reshape(num_packets, packet_size, 3)
-        d_packets = d_packets.reshape(num_packets, packet_size, 3)
-        leaf = _trace_packets(scene, o_packets, d_packets, chunk_size // packet_size)
-        leaf = leaf.reshape(-1)[:num]
-        triangle = _leaf_triangle(scene, o_search, d_search, leaf)
+    triangle = hit_triangles(
+        scene, o_search, jax.lax.stop_gradient(d), engine, packet_size, chunk_size
+    )
     t, bary = jax.vmap(lambda a, b, c: _differentiable_hit(scene, a, b, c))(o, d, triangle)
     hit = triangle >= 0
     object_id = jnp.where(hit, scene.triangle_object[jnp.maximum(triangle, 0)], -1)

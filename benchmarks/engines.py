@@ -1,0 +1,168 @@
+"""Nearest-hit engines side by side: ``jaxloc.raycast`` and ``jaxloc.render_batch`` with every
+installed engine vs single-threaded Embree (embreex ``EmbreeScene.run``, the peer) on the same rays,
+same run, reported as ratios of wall time (what a user waits for); process CPU time stands beside.
+
+Scene and rays are those of ``benchmarks/raycast.py``: the synthetic benchmark room (40 objects,
+~60k triangles) and 2500 random poses, with two ray sets per pose:
+
+* ``stride``: every 20th pixel of 960 x 540 (48 x 27 = 1296 rays), SG2Loc's coarse pass;
+* ``patch``: one ray per 16 x 9 patch centre (144 rays).
+
+``raycast`` rows cast the flat, pose-major rays (nearest hit only; ``t``, barycentric coordinates
+and object computed by JAX); ``render_batch`` rows render the views as the filter does (tile order,
+depth, colour, patch majority). The peer gets the same flat rays in one ``run`` call (one thread).
+Agreement is the share of rays whose hit triangle equals the peer's.
+
+    python benchmarks/engines.py                        # 2500 poses, both ray sets
+    python benchmarks/engines.py --poses 200 --grids stride
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import os
+import platform
+import resource
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from raycast import build_room, random_poses, timed, world_rays  # noqa: E402
+
+import jaxloc  # noqa: E402
+from jaxloc import _engines  # noqa: E402
+
+
+def peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10
+
+
+def device_peak_mib():
+    try:
+        stats = jax.devices()[0].memory_stats()
+    except Exception:  # noqa: BLE001 - backends without memory statistics
+        return None
+    return None if not stats else stats.get("peak_bytes_in_use", 0) / 2**20
+
+
+def time_jitted(fn, args, repeats):
+    """(compile wall s, best wall s, its CPU s, result) of ``jax.jit(fn)`` on ``args``."""
+    w0 = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    compile_s = time.perf_counter() - w0
+    jax.block_until_ready(compiled(*args))  # first call: builds and caches the engine's structure
+    wall, cpu, out = timed(lambda: jax.block_until_ready(compiled(*args)), repeats)
+    return compile_s, wall, cpu, out
+
+
+def run_grid(name, scene, peer, poses, camera, grid, engines, repeats):
+    origins, directions = world_rays(poses, camera, grid)
+    rows = []
+    wall, cpu, peer_tri = timed(lambda: peer.run(origins, directions), repeats)
+    rows.append({"what": "embreex EmbreeScene.run, 1 thread (peer)", "wall": wall, "cpu": cpu})
+    peer_wall = wall
+    for engine in engines:
+        cast = functools.partial(jaxloc.raycast, engine=engine)
+        compile_s, wall, cpu, hit = time_jitted(cast, (scene, origins, directions), repeats)
+        tri = np.asarray(hit.triangle_id)
+        rows.append(
+            {
+                "what": f"raycast, engine={engine}",
+                "compile": compile_s,
+                "wall": wall,
+                "cpu": cpu,
+                "agree": float(np.mean(tri == peer_tri)),
+            }
+        )
+    for engine in engines:
+        render = functools.partial(jaxloc.render_batch, engine=engine)
+        compile_s, wall, cpu, _ = time_jitted(render, (scene, poses, camera, grid), repeats)
+        what = f"render_batch, engine={engine}"
+        rows.append({"what": what, "compile": compile_s, "wall": wall, "cpu": cpu})
+    for row in rows:
+        row["ratio"] = peer_wall / row["wall"]
+    return origins.shape[0], rows
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--poses", type=int, default=2500)
+    parser.add_argument("--grids", default="stride,patch", help="comma list of stride,patch")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs (best of) per row")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--engines", default=None, help="comma list (default: auto and every installed engine)"
+    )
+    args = parser.parse_args(argv)
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    engines = (
+        args.engines.split(",")
+        if args.engines
+        else ["auto", "jax"] + [e for e in ("embree", "warp") if _engines.is_installed(e)]
+    )
+    t0 = time.perf_counter()
+    room, scene = build_room(args.seed)
+    build_s = time.perf_counter() - t0
+    triangles = np.asarray(scene.triangles)[: scene.num_triangles]
+    t0 = time.perf_counter()
+    peer = rtcore_scene.EmbreeScene()
+    TriangleMesh(peer, np.ascontiguousarray(triangles))
+    peer.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))  # builds its BVH
+    peer_build_s = time.perf_counter() - t0
+    camera = jaxloc.Camera.from_fov(960, 540, 60.0)
+    grids = {"patch": jaxloc.patch_grid(camera, 9, 16), "stride": jaxloc.stride_grid(camera, 20)}
+    poses = random_poses(room, args.poses, args.seed + 1)
+    load_start = os.getloadavg()[0]
+    device = jax.devices()[0]
+
+    print("# jaxloc nearest-hit engines vs single-threaded Embree")
+    print(
+        f"\n- scene: {scene.num_objects} objects, {scene.num_triangles} triangles; host build "
+        f"{build_s:.1f} s; peer Embree build {peer_build_s:.3f} s"
+    )
+    print(
+        f"- jax {jax.__version__} on {device.platform} ({device.device_kind}); "
+        f"{os.cpu_count()} CPUs visible, {platform.processor() or platform.machine()}; "
+        f"auto = {_engines.resolve_engine('auto')}; Embree threads "
+        f"{_engines._thread_pool()._max_workers}"
+    )
+    print(f"- load average {load_start:.1f} at the start")
+    print(
+        "\n| rays | what | compile s | wall s | CPU s | M rays/s (wall) | vs peer (wall) "
+        "| same triangle as peer |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    for name in args.grids.split(","):
+        num_rays, rows = run_grid(
+            name, scene, peer, poses, camera, grids[name], engines, args.repeats
+        )
+        label = f"{name}: {args.poses} x {num_rays // args.poses} = {num_rays}"
+        for row in rows:
+            compile_s = f"{row['compile']:.1f}" if "compile" in row else "-"
+            agree = f"{100 * row['agree']:.3f} %" if "agree" in row else "-"
+            print(
+                f"| {label} | {row['what']} | {compile_s} | {row['wall']:.3f} | {row['cpu']:.3f} "
+                f"| {num_rays / row['wall'] / 1e6:.2f} | {row['ratio']:.2f}x | {agree} |"
+            )
+    device_peak = device_peak_mib()
+    print(
+        f"\n- load average {os.getloadavg()[0]:.1f} at the end; peak RSS of the process "
+        f"{peak_rss_mib():.0f} MiB"
+        + ("" if device_peak is None else f"; peak device memory {device_peak:.0f} MiB")
+    )
+    print(
+        "- wall s: best of the timed runs after compilation and a warm-up call (which builds "
+        "the engine's acceleration structure once per map); render_batch rows include the "
+        "views (depth, colour, patch majority), so their ratio is against the peer's bare raycast"
+    )
+
+
+if __name__ == "__main__":
+    main()
