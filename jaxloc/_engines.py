@@ -140,41 +140,48 @@ def _build_embree(triangles: np.ndarray):
 _embree_scenes = _Cache(_build_embree)
 
 
+def embree_threads() -> int:
+    """Threads of the Embree engine: the CPUs this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return max(1, len(os.sched_getaffinity(0)))
+    return os.cpu_count() or 1
+
+
 @functools.cache
 def _thread_pool() -> concurrent.futures.ThreadPoolExecutor:
-    return concurrent.futures.ThreadPoolExecutor(os.cpu_count() or 1, "jaxloc-embree")
+    return concurrent.futures.ThreadPoolExecutor(embree_threads(), "jaxloc-embree")
 
 
 def _embree_nearest(scene, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Nearest triangle (R,) int32 of rays (R, 3) on a built Embree scene; -1 on a miss."""
-    faces = np.full(origins.shape[0], -1, np.int32)
-    valid = np.all(np.isfinite(origins), 1) & np.all(np.isfinite(directions), 1)
-    valid &= np.any(directions != 0, 1)
-    rays = np.flatnonzero(valid)
-    if rays.size == 0:
-        return faces
-    workers = _thread_pool()._max_workers
-    parts = np.array_split(rays, max(1, min(4 * workers, rays.size // EMBREE_BATCH)))
+    """Nearest triangle (R,) int32 of finite rays (R, 3) float32 on a built Embree scene.
 
-    def run(part):
-        o = np.ascontiguousarray(origins[part], np.float32)
-        d = np.ascontiguousarray(directions[part], np.float32)
-        return scene.run(o, d)
+    The rays are cut into contiguous slices (views, no copy), traced on the thread pool.
+    """
+    num = origins.shape[0]
+    faces = np.empty(num, np.int32)
+    parts = max(1, min(4 * embree_threads(), num // EMBREE_BATCH))
+    bounds = np.linspace(0, num, parts + 1).astype(int)
+    slices = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
-    if len(parts) == 1:
-        faces[rays] = run(rays)
+    def run(part: slice) -> None:
+        faces[part] = scene.run(origins[part], directions[part])
+
+    if parts == 1:
+        run(slice(0, num))
     else:
-        for part, found in zip(parts, _thread_pool().map(run, parts), strict=True):
-            faces[part] = found
+        list(_thread_pool().map(run, slices))
     return faces
 
 
 def _embree_host(key, triangles, origins, directions):
     """The host side of the Embree engine, batched the ``expand_dims`` way (see pure_callback).
 
-    Shapes: key (*L1, 2), triangles (*L2, T, 3, 3), origins and directions (*L3, R, 3), with size-1
-    axes where an argument is not batched; returns (*L, R) int32 for L the broadcast batch shape.
+    Shapes: key (*L1, 2), triangles (*L2, T, 3, 3), origins and directions (*L3, R, 3) (finite),
+    with size-1 axes where an argument is not batched; returns (*L, R) int32 for L the broadcast
+    batch shape.
     """
+    # The callback receives jax Arrays: one explicit conversion each (zero-copy on CPU).
+    key, triangles, origins, directions = map(np.asarray, (key, triangles, origins, directions))
     lead = np.broadcast_shapes(
         key.shape[:-1], triangles.shape[:-3], origins.shape[:-2], directions.shape[:-2]
     )
@@ -188,15 +195,19 @@ def _embree_host(key, triangles, origins, directions):
     directions = np.broadcast_to(directions, lead + directions.shape[-2:]).reshape(
         size, num_rays, 3
     )
+    origins = np.ascontiguousarray(origins, np.float32)
+    directions = np.ascontiguousarray(directions, np.float32)
     groups: dict[bytes, list[int]] = {}
     for i in range(size):
         groups.setdefault(key[i].tobytes(), []).append(i)
     faces = np.empty((size, num_rays), np.int32)
     for fp, members in groups.items():
         scene = _embree_scenes.get(("cpu", triangles.shape[1], fp), triangles[members[0]])
-        found = _embree_nearest(
-            scene, origins[members].reshape(-1, 3), directions[members].reshape(-1, 3)
-        )
+        if len(members) == size:  # one map for the whole batch (the usual case): no gather
+            rays = (origins.reshape(-1, 3), directions.reshape(-1, 3))
+        else:
+            rays = (origins[members].reshape(-1, 3), directions[members].reshape(-1, 3))
+        found = _embree_nearest(scene, *rays)
         faces[members] = found.reshape(len(members), num_rays)
     return faces.reshape(lead + (num_rays,))
 
@@ -206,6 +217,7 @@ def _embree_search(key: Array, triangles: Array, origins: Array, directions: Arr
     return jax.pure_callback(
         _embree_host, out, key, triangles, origins, directions, vmap_method="expand_dims"
     )
+
 
 
 # ------------------------------------------------------------------------------------- Warp
@@ -231,14 +243,10 @@ def _warp():
         faces: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        o = origins[i]
-        d = directions[i]
+        query = wp.mesh_query_ray(mesh, origins[i], directions[i], 1.0e30)
         face = int(-1)  # noqa: UP018 (a Warp variable that the branch below may assign)
-        finite = wp.isfinite(o) and wp.isfinite(d)
-        if finite and wp.length_sq(d) > 0.0:
-            query = wp.mesh_query_ray(mesh, o, d, 1.0e30)
-            if query.result:
-                face = query.face
+        if query.result:
+            face = query.face
         faces[i] = face
 
     def build(vertices):
@@ -289,13 +297,11 @@ def nearest_triangle(engine: str, triangles: Array, origins: Array, directions: 
         engine: "embree" or "warp" (resolved; see :func:`resolve_engine`).
         triangles: (T, 3, 3) float32 vertices, world frame; padding rows never hit (all-zero, so
             degenerate) and are also rejected by the caller.
-        origins: (R, 3) float32, non-finite for rays that must miss.
-        directions: (R, 3) float32 unit directions.
+        origins: (R, 3) float32, finite (the caller masks the rays that must miss).
+        directions: (R, 3) float32 finite unit directions.
     """
-    key = fingerprint(triangles)
-    if engine == "embree":
-        return _embree_search(key, triangles, origins, directions)
-    return _warp_search(key, triangles, origins, directions)
+    search = _embree_search if engine == "embree" else _warp_search
+    return search(fingerprint(triangles), triangles, origins, directions)
 
 
 def clear_caches() -> None:

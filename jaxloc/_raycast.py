@@ -298,17 +298,16 @@ def _safe_normalize(v: Array) -> tuple[Array, Array]:
     return unit, ok[..., 0]
 
 
-def _differentiable_hit(scene: SceneGraph, origin, direction, triangle):
-    """Recompute (t, barycentric) of one ray on a known triangle, differentiably.
+def _differentiable_hit(origin, direction, tri, hit):
+    """Recompute (t, barycentric) of one ray on its known triangle ``tri`` (3, 3), differentiably
+    (``hit`` False: t = inf, barycentric 0).
 
     ``t`` uses the plane form ``n . (v0 - o) / (n . d)`` with ``n = e1 x e2``, which keeps float32
     errors ~30x smaller than Moller-Trumbore's triple product for small, distant triangles; the
     barycentric coordinates come from Moller-Trumbore (clipped to the triangle).
     """
-    hit = triangle >= 0
     origin = jnp.where(hit, origin, 0.0)
     direction = jnp.where(hit, direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
-    tri = scene.triangles[jnp.maximum(triangle, 0)]
     v0 = tri[0]
     e1, e2 = tri[1] - v0, tri[2] - v0
     _, u, v, _ = _moller_trumbore(origin, direction, v0, e1, e2)
@@ -325,15 +324,16 @@ def hit_triangles(
     scene: SceneGraph,
     origins: Array,
     directions: Array,
+    valid: Array,
     engine: str,
     packet_size: int = 1,
     chunk_size: int = DEFAULT_CHUNK,
 ) -> Array:
     """The engine's hit search alone: nearest triangle (R,) int32 of each ray, -1 on a miss.
 
-    ``origins`` (R, 3) are NaN for rays that must miss, ``directions`` (R, 3) unit vectors (both
-    without gradient); ``engine`` is resolved ("jax", "embree" or "warp"). A padding triangle is
-    never reported.
+    ``origins`` (R, 3) finite, ``directions`` (R, 3) finite unit vectors (both without gradient);
+    rays where ``valid`` (R,) is False miss. ``engine`` is resolved ("jax", "embree" or "warp").
+    A padding triangle is never reported.
     """
     num = origins.shape[0]
     if num == 0:
@@ -341,7 +341,8 @@ def hit_triangles(
     if engine != "jax":
         triangle = nearest_triangle(engine, scene.triangles, origins, directions)
         real = scene.triangle_object[jnp.clip(triangle, 0, scene.triangles.shape[0] - 1)] >= 0
-        return jnp.where((triangle >= 0) & real, triangle, -1)
+        return jnp.where(valid & (triangle >= 0) & real, triangle, -1)
+    origins = jnp.where(valid[:, None], origins, jnp.nan)  # the traversal retires NaN rays
     num_packets = -(-num // packet_size)
     pad = num_packets * packet_size - num
     o_packets = jnp.pad(origins, ((0, pad), (0, 0)), constant_values=jnp.nan)
@@ -396,12 +397,15 @@ def raycast(
     shape = jnp.broadcast_shapes(origins.shape, directions.shape)
     o = jnp.broadcast_to(origins, shape).reshape(-1, 3)
     d, ok = _safe_normalize(jnp.broadcast_to(directions, shape).reshape(-1, 3))
-    o_search = jax.lax.stop_gradient(jnp.where(ok[:, None], o, jnp.nan))
+    ok &= jnp.all(jnp.isfinite(o), axis=1)
+    o_search = jax.lax.stop_gradient(jnp.where(ok[:, None], o, 0.0))
     triangle = hit_triangles(
-        scene, o_search, jax.lax.stop_gradient(d), engine, packet_size, chunk_size
+        scene, o_search, jax.lax.stop_gradient(d), ok, engine, packet_size, chunk_size
     )
-    t, bary = jax.vmap(lambda a, b, c: _differentiable_hit(scene, a, b, c))(o, d, triangle)
     hit = triangle >= 0
+    # Ids are in [-1, T), so the clamped gather is always in bounds.
+    vertices = scene.triangles.at[jnp.maximum(triangle, 0)].get(mode="promise_in_bounds")
+    t, bary = jax.vmap(_differentiable_hit)(o, d, vertices, hit)
     object_id = jnp.where(hit, scene.triangle_object[jnp.maximum(triangle, 0)], -1)
     lead = shape[:-1]
     return RayHit(
