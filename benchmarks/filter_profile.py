@@ -107,11 +107,14 @@ def profile_stride(scene, seq, poses_gt, stride, round_index, args):
         poses = np.where(np.asarray(state.active)[:, None], poses, np.nan).astype(np.float32)
     origins, directions = render_order_rays(poses, seq.camera, grid, PACKET_SIZE)
     directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    valid = np.all(np.isfinite(origins), axis=1)
+    finite_origins = np.where(valid[:, None], origins, 0.0).astype(np.float32)
     engine = resolve_engine(args.engine)
 
     parts = {}
     search = functools.partial(hit_triangles, engine=engine, packet_size=PACKET_SIZE)
-    parts["hit search"] = timed_jit(search, (scene, origins, directions), args.repeats)
+    search_args = (scene, finite_origins, directions, valid)
+    parts["hit search"] = timed_jit(search, search_args, args.repeats)
     cast = functools.partial(raycast, engine=engine, packet_size=PACKET_SIZE)
     cast_time = timed_jit(cast, (scene, origins, directions), args.repeats)
     parts["hit attributes (t, barycentric, object)"] = tuple(
@@ -136,9 +139,12 @@ def profile_stride(scene, seq, poses_gt, stride, round_index, args):
 
     previous = (0.0, 0.0)
     for name, observation in (
-        ("semantic score (patch match + per particle)", ObservationConfig(False, False)),
-        ("depth score", ObservationConfig(True, False)),
-        ("colour score (SSIM)", ObservationConfig(True, True)),
+        (
+            "semantic score (patch match + per particle)",
+            ObservationConfig(use_depth=False, use_color=False),
+        ),
+        ("depth score", ObservationConfig(use_depth=True, use_color=False)),
+        ("colour score (SSIM)", ObservationConfig(use_depth=True, use_color=True)),
     ):
         total = timed_jit(functools.partial(scores, observation), (views, frame1), args.repeats)
         parts[name] = tuple(a - b for a, b in zip(total, previous, strict=True))

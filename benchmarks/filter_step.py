@@ -70,6 +70,12 @@ def parse_args(argv=None) -> argparse.Namespace:
         default=None,
         help="particles per render chunk (default: by CHUNK_RAYS; 0: every slot in one call)",
     )
+    parser.add_argument(
+        "--min-particles",
+        type=int,
+        default=None,
+        help="KLDConfig.min_particles (default 500; --particles keeps every slot active)",
+    )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--data", default=None, help=argparse.SUPPRESS)
     return parser.parse_args(argv)
@@ -173,7 +179,9 @@ def run_case(args: argparse.Namespace) -> dict:
         camera=seq.camera,
         grid=grid,
         observation=ObservationConfig(),
-        kld=KLDConfig(),
+        kld=KLDConfig()
+        if args.min_particles is None
+        else KLDConfig(min_particles=args.min_particles),
         region=region,
         engine=args.engine,
         particle_chunk=args.particles if args.chunk == 0 else args.chunk,
@@ -319,6 +327,10 @@ def report(args, data_info: dict, results: list[dict]) -> str:
         ),
         "particles active at the first frame (inactive slots cast no rays): "
         + ", ".join(f"{r['case']} {r['active_at_start']}" for r in results),
+        "particles after each frame's KLD resampling (active at the next frame): "
+        + "; ".join(
+            f"{r['case']}: " + ", ".join(str(n) for n in r["num_particles"]) for r in results
+        ),
         "peak RSS: ru_maxrss of the case's own process (includes the map, the sequence and the "
         "JAX runtime; RSS before compiling: "
         + ", ".join(f"{r['case']} {r['rss_before_mib']:.0f}" for r in results)
@@ -355,6 +367,8 @@ def main(argv=None) -> None:
                 command += [f"--{name}", str(getattr(args, name))]
             if args.chunk is not None:
                 command += ["--chunk", str(args.chunk)]
+            if args.min_particles is not None:
+                command += ["--min-particles", str(args.min_particles)]
             output = subprocess.run(command, capture_output=True, text=True, check=False)
             lines = [x for x in output.stdout.splitlines() if x.startswith("RESULT ")]
             if output.returncode != 0 or not lines:
