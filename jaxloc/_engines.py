@@ -219,7 +219,6 @@ def _embree_search(key: Array, triangles: Array, origins: Array, directions: Arr
     )
 
 
-
 # ------------------------------------------------------------------------------------- Warp
 
 

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.sharding import Mesh, PartitionSpec
 
 from jaxloc._convert import as_float32, as_int32
 from jaxloc._engines import check_engine_name
@@ -84,6 +85,10 @@ class StepConfig(eqx.Module):
             active count and its peak memory ``particle_chunk`` x rays per particle. ``None``
             picks ``CHUNK_RAYS // rays per particle`` (at least 1); a value >= the particle
             capacity renders every slot at once (no loop).
+        mesh: a 1-D device mesh the particle buffer is split over (static; set by
+            :mod:`jaxloc.sharding` and ``localize(..., mesh=)``). Each device then renders and
+            scores its own shard (``jax.shard_map``), calling the engine on its own rays, with its
+            own chunk loop; the weights and resampling stay global. ``None``: one device.
     """
 
     camera: Camera
@@ -98,6 +103,7 @@ class StepConfig(eqx.Module):
     heights: Array = eqx.field(default=PAPER_HEIGHTS, converter=as_float32)
     engine: str = eqx.field(static=True, default="auto")
     particle_chunk: int | None = eqx.field(static=True, default=None)
+    mesh: Mesh | None = eqx.field(static=True, default=None)
 
     def __check_init__(self) -> None:
         check_engine_name(self.engine)
@@ -223,19 +229,35 @@ def score_active(
 
     The active particles are gathered to the front and rendered ``config.chunk_size(N)`` at a
     time in a ``lax.while_loop`` that stops after the last chunk holding one (a chunk size >= N
-    renders every slot in one call instead).
+    renders every slot in one call instead). With ``config.mesh`` every device does this for its
+    own shard of the buffer.
     """
-    capacity = state.active.shape[0]
+    if config.mesh is None:
+        return _score_shard(state.poses, state.active, frame, scene, config)
+    split, whole = PartitionSpec(config.mesh.axis_names[0]), PartitionSpec()
+    per_device = jax.shard_map(
+        _score_shard,
+        mesh=config.mesh,
+        in_specs=(split, split, whole, whole, whole),
+        out_specs=split,
+        check_vma=False,
+    )
+    return per_device(state.poses, state.active, frame, scene, config)
+
+
+def _score_shard(
+    poses: Array, active: Array, frame: Frame, scene: SceneGraph, config: StepConfig
+) -> Scores:
+    """:func:`score_active` of particles ``poses`` (M, 4) with mask ``active`` (M,)."""
+    capacity = active.shape[0]
     chunk = config.chunk_size(capacity)
     if chunk >= capacity:
         # Inactive slots cast invalid (NaN) rays, which every engine retires at once.
-        return _score_poses(
-            jnp.where(state.active[:, None], state.poses, jnp.nan), frame, scene, config
-        )
+        return _score_poses(jnp.where(active[:, None], poses, jnp.nan), frame, scene, config)
     num_chunks = -(-capacity // chunk)
-    order = jnp.argsort(~state.active, stable=True)  # active slots first, in slot order
+    order = jnp.argsort(~active, stable=True)  # active slots first, in slot order
     order = jnp.pad(order, (0, num_chunks * chunk - capacity))
-    num_active = jnp.sum(state.active)
+    num_active = jnp.sum(active)
     scored = jnp.zeros((num_chunks * chunk,), jnp.float32)
     init = (jnp.int32(0), Scores(scored, scored, scored, scored))
 
@@ -243,8 +265,8 @@ def score_active(
         i, scores = carry
         rank = i * chunk + jnp.arange(chunk)
         slots = jax.lax.dynamic_slice(order, (i * chunk,), (chunk,))
-        poses = jnp.where((rank < num_active)[:, None], state.poses[slots], jnp.nan)
-        found = _score_poses(poses, frame, scene, config)
+        chosen = jnp.where((rank < num_active)[:, None], poses[slots], jnp.nan)
+        found = _score_poses(chosen, frame, scene, config)
         scores = jax.tree.map(
             lambda all_, part: jax.lax.dynamic_update_slice(all_, part, (i * chunk,)),
             scores,

@@ -239,6 +239,7 @@ def localize(
             heights=config.heights,
             engine=config.engine,
             particle_chunk=config.particle_chunk,
+            mesh=mesh,
         )
         init_args = (
             None if r == 0 else (centre, config.box_half_widths[r - 1], config.yaw_half_range)

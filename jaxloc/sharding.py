@@ -9,11 +9,13 @@ sharded by XLA's sharding propagation. Three kinds of work split cleanly:
   count); :func:`sharded_step` / :func:`sharded_run_pass` are :func:`jaxloc.filter.step` /
   :func:`jaxloc.filter.run_pass` with the state pinned to that sharding (the map, the frames and
   the configuration are replicated); :func:`jaxloc.sg2loc.localize` takes the same split with its
-  ``mesh=`` argument. Rendering and scoring, the bulk of the work, are per particle
-  and run locally; the weight normalisation, the KLD bin count and resampling are global (XLA
-  inserts the collectives).
+  ``mesh=`` argument. Rendering and scoring, the bulk of the work, are per particle: each device
+  renders and scores its own shard under ``jax.shard_map`` (``StepConfig.mesh``), so it calls
+  the nearest-hit engine (Embree, Warp or the JAX traversal) on its own rays; the weight
+  normalisation, the KLD bin count and resampling are global (XLA inserts the collectives).
 * **independent sequences** (sweeps over seeds, episodes or settings): :func:`sharded_run_passes`
-  vmaps :func:`~jaxloc.filter.run_pass` over a leading batch axis split over the devices.
+  vmaps :func:`~jaxloc.filter.run_pass` over a leading batch axis split over the devices, each
+  device running its own passes under ``jax.shard_map``.
 * **LiDAR queries**: :func:`localize_scans` pads a list of scans to one capacity and runs the
   jitted :func:`~jaxloc.triplet.describe_query` / :func:`~jaxloc.triplet.register_query` vmapped
   over the batch, split over the devices.
@@ -38,6 +40,7 @@ process feeding its own part of the batch) is described in the README.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 
@@ -147,6 +150,7 @@ def sharded_step(
     Pass a state from :func:`shard_particles`; ``frame``, ``scene`` and ``config`` may be host
     arrays or :func:`replicate` d ones.
     """
+    config = dataclasses.replace(config, mesh=mesh)
     state, info = step(key, pin_split(state, mesh), frame, scene, config)
     return pin_split(state, mesh), info
 
@@ -162,6 +166,7 @@ def sharded_run_pass(
 ) -> tuple[ParticleState, StepInfo]:
     """:func:`jaxloc.filter.run_pass` (``lax.scan`` over T frames) with the particles split over
     ``mesh``; same keys, same result as the single-device pass (see the module docstring)."""
+    config = dataclasses.replace(config, mesh=mesh)
     state, info = run_pass(key, pin_split(state, mesh), frames, scene, config)
     return pin_split(state, mesh), info
 
@@ -185,9 +190,15 @@ def sharded_run_passes(
     Returns:
         Final states (B, ...) and per-frame infos (B, T, ...), split over ``mesh``.
     """
-    keys, states, frames = pin_split((keys, states, frames), mesh)
-    out = jax.vmap(run_pass, in_axes=(0, 0, 0, None, None))(keys, states, frames, scene, config)
-    return pin_split(out, mesh)
+    split, whole = PartitionSpec(AXIS), PartitionSpec()
+    per_device = jax.shard_map(  # each device runs its own passes, engine calls included
+        jax.vmap(run_pass, in_axes=(0, 0, 0, None, None)),
+        mesh=mesh,
+        in_specs=(split, split, split, whole, whole),
+        out_specs=split,
+        check_vma=False,
+    )
+    return per_device(keys, states, frames, scene, config)
 
 
 def localize_scans(

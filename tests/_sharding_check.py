@@ -15,6 +15,7 @@ os.environ["XLA_FLAGS"] = (
     os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
 ).strip()
 
+import dataclasses  # noqa: E402
 import hashlib  # noqa: E402
 import json  # noqa: E402
 import time  # noqa: E402
@@ -24,12 +25,14 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxloc import sg2loc, sharding  # noqa: E402
+from jaxloc import _engines, sg2loc, sharding  # noqa: E402
 from jaxloc.datasets.outdoor import make_outdoor_world, make_query  # noqa: E402
 from jaxloc.resample import KLDConfig  # noqa: E402
 from jaxloc.triplet import build_map, localize_scan, tripletloc_config  # noqa: E402
 
 NUM_FRAMES = tiny.CHUNK
+#: The nearest-hit engines installed here.
+ENGINES = ["jax"] + [e for e in ("embree", "warp") if _engines.is_installed(e)]
 
 
 def digest(tree) -> str:
@@ -48,9 +51,11 @@ def max_abs(a, b) -> float:
     return float(np.max(np.abs(a[finite] - b[finite]), initial=0.0))
 
 
-def particle_checks(mesh) -> dict:
+def particle_checks(mesh, engine: str = "auto", particle_chunk: int | None = None) -> dict:
     scene = tiny.scene()
-    config = tiny.step_config(scene)
+    config = dataclasses.replace(
+        tiny.step_config(scene), engine=engine, particle_chunk=particle_chunk
+    )
     frames = tiny.frames(NUM_FRAMES)
     state = tiny.initial_state(scene)
     key = jax.random.key(2)
@@ -103,13 +108,38 @@ def particle_checks(mesh) -> dict:
     return out
 
 
-def localize_checks(mesh) -> dict:
+def engine_call_checks(mesh) -> dict:
+    """Rays per Embree call in a sharded step: each device calls the engine on its own shard."""
+    scene = tiny.scene()
+    config = dataclasses.replace(tiny.step_config(scene), engine="embree")
+    state = tiny.initial_state(scene)
+    calls = []
+    host = _engines._embree_host
+
+    def counting(key, triangles, origins, directions):
+        calls.append(int(np.prod(np.shape(origins)[:-1])))
+        return host(key, triangles, origins, directions)
+
+    _engines._embree_host = counting
+    try:
+        frame = jax.tree.map(lambda a: a[0], tiny.frames(NUM_FRAMES))
+        sharding.sharded_step(
+            jax.random.key(7), sharding.shard_particles(state, mesh), frame, scene, config, mesh
+        )
+        jax.effects_barrier()
+    finally:
+        _engines._embree_host = host
+    return {"embree_rays_per_call": sorted(calls), "rays_per_particle": config.grid.uv.shape[0]}
+
+
+def localize_checks(mesh, engine: str = "auto") -> dict:
     """The user API: ``sg2loc.localize`` with and without ``mesh`` (one round, 3 frames)."""
     scene = tiny.scene()
     config = sg2loc.SG2LocConfig(
         capacity=tiny.CAPACITY,
         strides=(2,),
         kld=KLDConfig(min_particles=4, max_particles=tiny.CAPACITY),
+        engine=engine,
     )
     sequence = tiny.sequence(3)
     key = jax.random.key(5)
@@ -155,6 +185,14 @@ def main() -> None:
     result["particle_seconds"] = time.perf_counter() - start
     result.update(localize_checks(mesh))
     result["localize_seconds"] = time.perf_counter() - start - result["particle_seconds"]
+    # every installed engine, and the chunk loop (2 particles per chunk, 2 chunks per device)
+    variants = [(engine, None) for engine in ENGINES] + [("auto", 2)]
+    result["engines"] = {
+        f"{engine}/{chunk}": particle_checks(mesh, engine, chunk) | localize_checks(mesh, engine)
+        for engine, chunk in variants
+    }
+    if "embree" in ENGINES:
+        result.update(engine_call_checks(mesh))
     result.update(query_checks(mesh))
     result["total_seconds"] = time.perf_counter() - start
     print("RESULT " + json.dumps(result))

@@ -10,6 +10,7 @@ device this process has.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import json
 import os
 import subprocess
@@ -26,6 +27,8 @@ from jaxloc import sg2loc, sharding
 from jaxloc.particles import ParticleState
 
 SCRIPT = Path(__file__).with_name("_sharding_check.py")
+#: The package of each optional engine.
+PACKAGES = {"embree": "embreex", "warp": "warp"}
 
 
 @pytest.fixture(scope="module")
@@ -68,6 +71,33 @@ def test_localize_with_a_mesh_equals_one_device(measured):
     assert not measured["localize_nan"]
     assert measured["localize_poses_diff"] <= 1e-5
     assert measured["localize_particles_devices"] == 4
+
+
+def test_every_engine_and_the_chunk_loop_run_sharded_like_one_device(measured):
+    """Each installed engine, and chunks of 2 particles per device (a loop per shard), give the
+    single-device pass and localize on 4 devices: the same discrete results, close poses."""
+    expected = {"jax/None", "auto/2"} | {
+        f"{e}/None" for e in ("embree", "warp") if importlib.util.find_spec(PACKAGES[e])
+    }
+    assert set(measured["engines"]) == expected
+    for name, checks in measured["engines"].items():
+        assert checks["state_devices"] == 4, name
+        assert checks["pass_counts_equal"] and checks["pass_active_equal"], name
+        assert not checks["pass_nan"] and not checks["localize_nan"], name
+        assert checks["pass_mle_diff"] <= 1e-5 and checks["pass_poses_diff"] <= 1e-5, name
+        assert checks["pass_log_weights_diff"] <= 1e-4, name
+        assert checks["batch_counts_equal"] and checks["batch_mle_diff"] <= 1e-5, name
+        assert checks["localize_counts_equal"], name
+        assert checks["localize_poses_diff"] <= 1e-5, name
+
+
+def test_each_device_calls_the_engine_on_its_own_shard(measured):
+    """A sharded step with Embree calls it once per device, each time with one shard's rays
+    (16 particles / 4 devices, rounded up to the render's 8-ray packets), not with all of them."""
+    if "embree_rays_per_call" not in measured:
+        pytest.skip("embreex not installed")
+    per_particle = -(-measured["rays_per_particle"] // 8) * 8
+    assert measured["embree_rays_per_call"] == [tiny.CAPACITY // 4 * per_particle] * 4
 
 
 def test_sharded_queries_equal_localize_scan(measured):
