@@ -2,7 +2,9 @@
 
 Each scene is ``jaxloc.datasets.indoor.make_episode(seed, T, config)`` with the dataset's realistic
 defaults (20 % patch confusions, cosine 0.7-0.9, 2 % depth noise, 10 % holes, 2 cm / 1 degree
-ego-motion drift per frame, 10 % of objects changed) at a reduced sensor size (see ``--width``).
+ego-motion drift per frame, 10 % of objects changed), at the paper's scale by default: 960x540
+frames, strides 20 / 8 / 4, 2500 particles (``--width --height --strides --capacity`` reduce it;
+``experiments/results/sg2loc_reduced/`` keeps the earlier 160x90 runs, see its NOTES.md).
 Sequences of length T are the first T frames of one trajectory per scene. Maps are padded to one
 shared :class:`jaxloc.scene.Capacity` so every scene reuses the compiled filter step.
 
@@ -13,6 +15,8 @@ Runs (``--phase``):
 * ``B``: Table 7's ablations on 5-frame sequences (full, semantic only, semantic + depth, fixed
   particle count instead of KLD-sampling, a single coarse round) and Table 1/2's 5-frame column;
 * ``C``: Table 1/2's 25- and 50-frame columns on the first ``--long-scenes`` scenes.
+
+``--frames`` keeps only the jobs of those sequence lengths (e.g. ``--phase C --frames 25``).
 
 Every finished run appends a row to ``runs_<phase>.csv`` (and per-frame errors to
 ``frames_<phase>.csv``) at once, so a cut run still leaves results; ``--report`` only rebuilds the
@@ -62,7 +66,7 @@ RUN_FIELDS = (
 
 
 def variant_config(name: str, args: argparse.Namespace) -> SG2LocConfig:
-    """The SG2Loc configuration of one table row (reduced scale, paper schedule otherwise)."""
+    """The SG2Loc configuration of one table row (the scale of ``args``, paper schedule)."""
     strides = tuple(args.strides)
     kld = KLDConfig(max_particles=args.capacity)
     full = SG2LocConfig(capacity=args.capacity, strides=strides, kld=kld)
@@ -190,6 +194,7 @@ def run_phase(args: argparse.Namespace, phase: str) -> None:
         with runs_csv.open() as f:
             done = {(int(r["seed"]), r["variant"], int(r["frames"])) for r in csv.DictReader(f)}
     jobs = [(v, n) for v, n in PHASES[phase] if args.variants is None or v in args.variants]
+    jobs = [(v, n) for v, n in jobs if args.frames is None or n in args.frames]
     if args.variants is not None:  # in the order given (cheap variants first, say)
         jobs.sort(key=lambda job: args.variants.index(job[0]))
     scenes = args.long_scenes if phase == "C" else args.scenes
@@ -391,10 +396,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--scenes", type=int, default=20)
     parser.add_argument("--long-scenes", type=int, default=20, help="scenes of phase C")
     parser.add_argument("--seed0", type=int, default=1000)
-    parser.add_argument("--width", type=int, default=160)
-    parser.add_argument("--height", type=int, default=90)
-    parser.add_argument("--strides", type=int, nargs="+", default=[10, 6, 4])
-    parser.add_argument("--capacity", type=int, default=1000)
+    parser.add_argument("--width", type=int, default=960)
+    parser.add_argument("--height", type=int, default=540)
+    parser.add_argument("--strides", type=int, nargs="+", default=[20, 8, 4])
+    parser.add_argument("--capacity", type=int, default=2500)
+    parser.add_argument("--frames", type=int, nargs="+", help="only jobs of these lengths")
     parser.add_argument("--figure", action="store_true", help="write fig3_rounds.png (phase B)")
     parser.add_argument("--out", default=str(OUT))
     parser.add_argument("--variants", nargs="+", help="only these variants, in this order")
