@@ -122,22 +122,58 @@ class _Cache:
             self._items.clear()
 
 
+def real_triangles(triangles: np.ndarray) -> np.ndarray:
+    """Indices (K,) of the real rows of ``triangles`` (T, 3, 3): padding rows are all zero.
+
+    Engines build on these only: thousands of degenerate padding triangles at the origin would
+    make one leaf that every ray passing near the origin has to test.
+    """
+    return np.flatnonzero(np.any(triangles.reshape(triangles.shape[0], -1) != 0, axis=1))
+
+
 # ----------------------------------------------------------------------------------- Embree
 
 
-def _build_embree(triangles: np.ndarray):
-    from embreex import rtcore_scene
-    from embreex.mesh_construction import TriangleMesh
+class _EmbreeMap:
+    """An Embree scene of a map's real triangles and their indices in the map."""
 
-    try:  # robust (watertight) traversal: no ray slips between two triangles sharing an edge
-        scene = rtcore_scene.EmbreeScene(robust=True)
-    except TypeError:  # embreex 2.x (Embree 2) has no robust flag
-        scene = rtcore_scene.EmbreeScene()
-    TriangleMesh(scene, np.ascontiguousarray(triangles, np.float32))
-    return scene
+    def __init__(self, triangles: np.ndarray):
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        self.ids = real_triangles(triangles).astype(np.int32)
+        try:  # robust (watertight) traversal: no ray slips between two triangles sharing an edge
+            self.scene = rtcore_scene.EmbreeScene(robust=True)
+        except TypeError:  # embreex 2.x (Embree 2) has no robust flag
+            self.scene = rtcore_scene.EmbreeScene()
+        if self.ids.size:
+            TriangleMesh(self.scene, np.ascontiguousarray(triangles[self.ids], np.float32))
+
+    def nearest(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+        """Nearest triangle (R,) int32 (map index, -1 on a miss) of finite rays (R, 3) float32.
+
+        The rays are cut into contiguous slices (views, no copy), traced on the thread pool.
+        """
+        num = origins.shape[0]
+        faces = np.full(num, -1, np.int32)
+        if num == 0 or self.ids.size == 0:
+            return faces
+        parts = max(1, min(4 * embree_threads(), num // EMBREE_BATCH))
+        bounds = np.linspace(0, num, parts + 1).astype(int)
+
+        def run(part: slice) -> None:
+            found = self.scene.run(origins[part], directions[part])
+            faces[part] = np.where(found >= 0, self.ids[np.maximum(found, 0)], -1)
+
+        if parts == 1:
+            run(slice(0, num))
+        else:
+            slices = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+            list(_thread_pool().map(run, slices))
+        return faces
 
 
-_embree_scenes = _Cache(_build_embree)
+_embree_maps = _Cache(_EmbreeMap)
 
 
 def embree_threads() -> int:
@@ -152,70 +188,53 @@ def _thread_pool() -> concurrent.futures.ThreadPoolExecutor:
     return concurrent.futures.ThreadPoolExecutor(embree_threads(), "jaxloc-embree")
 
 
-def _embree_nearest(scene, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """Nearest triangle (R,) int32 of finite rays (R, 3) float32 on a built Embree scene.
-
-    The rays are cut into contiguous slices (views, no copy), traced on the thread pool.
-    """
-    num = origins.shape[0]
-    faces = np.empty(num, np.int32)
-    parts = max(1, min(4 * embree_threads(), num // EMBREE_BATCH))
-    bounds = np.linspace(0, num, parts + 1).astype(int)
-    slices = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
-
-    def run(part: slice) -> None:
-        faces[part] = scene.run(origins[part], directions[part])
-
-    if parts == 1:
-        run(slice(0, num))
-    else:
-        list(_thread_pool().map(run, slices))
-    return faces
-
-
-def _embree_host(key, triangles, origins, directions):
+def _embree_host(key, triangles, origins, directions, valid):
     """The host side of the Embree engine, batched the ``expand_dims`` way (see pure_callback).
 
     Shapes: key (*L1, 2), triangles (*L2, T, 3, 3), origins and directions (*L3, R, 3) (finite),
-    with size-1 axes where an argument is not batched; returns (*L, R) int32 for L the broadcast
-    batch shape.
+    valid (*L4, R), with size-1 axes where an argument is not batched; returns (*L, R) int32 for
+    L the broadcast batch shape. Only the valid rays are traced (the others miss).
     """
     # The callback receives jax Arrays: one explicit conversion each (zero-copy on CPU).
-    key, triangles, origins, directions = map(np.asarray, (key, triangles, origins, directions))
+    key, triangles, origins, directions, valid = map(
+        np.asarray, (key, triangles, origins, directions, valid)
+    )
     lead = np.broadcast_shapes(
-        key.shape[:-1], triangles.shape[:-3], origins.shape[:-2], directions.shape[:-2]
+        key.shape[:-1],
+        triangles.shape[:-3],
+        origins.shape[:-2],
+        directions.shape[:-2],
+        valid.shape[:-1],
     )
     num_rays = origins.shape[-2]
     size = int(np.prod(lead))
-    key = np.broadcast_to(key, lead + key.shape[-1:]).reshape(size, -1)
-    triangles = np.broadcast_to(triangles, lead + triangles.shape[-3:]).reshape(
-        (size,) + triangles.shape[-3:]
-    )
-    origins = np.broadcast_to(origins, lead + origins.shape[-2:]).reshape(size, num_rays, 3)
-    directions = np.broadcast_to(directions, lead + directions.shape[-2:]).reshape(
-        size, num_rays, 3
-    )
-    origins = np.ascontiguousarray(origins, np.float32)
-    directions = np.ascontiguousarray(directions, np.float32)
+
+    def flat(array, tail):
+        return np.broadcast_to(array, lead + tail).reshape((size,) + tail)
+
+    key, triangles = flat(key, key.shape[-1:]), flat(triangles, triangles.shape[-3:])
+    origins = np.ascontiguousarray(flat(origins, (num_rays, 3)), np.float32).reshape(-1, 3)
+    directions = np.ascontiguousarray(flat(directions, (num_rays, 3)), np.float32).reshape(-1, 3)
+    valid = flat(valid, (num_rays,)).reshape(-1)
     groups: dict[bytes, list[int]] = {}
     for i in range(size):
         groups.setdefault(key[i].tobytes(), []).append(i)
-    faces = np.empty((size, num_rays), np.int32)
+    faces = np.full(size * num_rays, -1, np.int32)
     for fp, members in groups.items():
-        scene = _embree_scenes.get(("cpu", triangles.shape[1], fp), triangles[members[0]])
-        if len(members) == size:  # one map for the whole batch (the usual case): no gather
-            rays = (origins.reshape(-1, 3), directions.reshape(-1, 3))
-        else:
-            rays = (origins[members].reshape(-1, 3), directions[members].reshape(-1, 3))
-        found = _embree_nearest(scene, *rays)
-        faces[members] = found.reshape(len(members), num_rays)
+        embree_map = _embree_maps.get(("cpu", triangles.shape[1], fp), triangles[members[0]])
+        rows = np.arange(size * num_rays).reshape(size, num_rays)[members].reshape(-1)
+        if len(members) == size and valid.all():  # the usual case: no gather, no scatter
+            faces[:] = embree_map.nearest(origins, directions)
+            continue
+        rays = rows[valid[rows]]
+        faces[rays] = embree_map.nearest(origins[rays], directions[rays])
     return faces.reshape(lead + (num_rays,))
 
 
-def _embree_search(key: Array, triangles: Array, origins: Array, directions: Array) -> Array:
+def _embree_search(key, triangles, origins, directions, valid) -> Array:
     out = jax.ShapeDtypeStruct(origins.shape[:-1], jnp.int32)
     return jax.pure_callback(
-        _embree_host, out, key, triangles, origins, directions, vmap_method="expand_dims"
+        _embree_host, out, key, triangles, origins, directions, valid, vmap_method="expand_dims"
     )
 
 
@@ -237,23 +256,31 @@ def _warp():
     @wp.kernel
     def nearest_face(
         mesh: wp.uint64,
+        ids: wp.array(dtype=wp.int32),
         origins: wp.array(dtype=wp.vec3),
         directions: wp.array(dtype=wp.vec3),
+        valid: wp.array(dtype=wp.int32),
         faces: wp.array(dtype=wp.int32),
     ):
         i = wp.tid()
-        query = wp.mesh_query_ray(mesh, origins[i], directions[i], 1.0e30)
-        face = int(-1)  # noqa: UP018 (a Warp variable that the branch below may assign)
-        if query.result:
-            face = query.face
+        face = int(-1)  # noqa: UP018 (a Warp variable that the branches below may assign)
+        if valid[i] != 0:
+            query = wp.mesh_query_ray(mesh, origins[i], directions[i], 1.0e30)
+            if query.result:
+                face = ids[query.face]
         faces[i] = face
 
     def build(vertices):
-        points = wp.clone(vertices)
-        indices = wp.array(
-            np.arange(vertices.shape[0], dtype=np.int32), dtype=wp.int32, device=vertices.device
-        )
-        return wp.Mesh(points=points, indices=indices), points, indices
+        """The Warp mesh of the map's real triangles (vertices (3T, 3) on the device)."""
+        triangles = vertices.numpy().reshape(-1, 3, 3)
+        real = real_triangles(triangles).astype(np.int32)
+        if real.size == 0:  # an empty map: one far-away degenerate triangle, never hit
+            real, triangles = np.zeros(1, np.int32), np.full((1, 3, 3), 1e30, np.float32)
+        device = vertices.device
+        points = wp.array(triangles[real].reshape(-1, 3), dtype=wp.vec3, device=device)
+        indices = wp.array(np.arange(3 * real.size, dtype=np.int32), dtype=wp.int32, device=device)
+        ids = wp.array(real, dtype=wp.int32, device=device)
+        return wp.Mesh(points=points, indices=indices), ids, points, indices
 
     meshes = _Cache(build)
 
@@ -262,14 +289,15 @@ def _warp():
         vertices: wp.array(dtype=wp.vec3),
         origins: wp.array(dtype=wp.vec3),
         directions: wp.array(dtype=wp.vec3),
+        valid: wp.array(dtype=wp.int32),
         faces: wp.array(dtype=wp.int32),
     ):
         cache_key = (str(vertices.device), vertices.shape[0], key.numpy().tobytes())
-        mesh = meshes.get(cache_key, vertices)[0]
+        mesh, ids = meshes.get(cache_key, vertices)[:2]
         wp.launch(
             nearest_face,
             dim=origins.shape[0],
-            inputs=[mesh.id, origins, directions],
+            inputs=[mesh.id, ids, origins, directions, valid],
             outputs=[faces],
             device=origins.device,
         )
@@ -280,31 +308,37 @@ def _warp():
     return callable_, meshes
 
 
-def _warp_search(key: Array, triangles: Array, origins: Array, directions: Array) -> Array:
+def _warp_search(key, triangles, origins, directions, valid) -> Array:
     callable_, _ = _warp()
-    num_rays = origins.shape[0]
     (faces,) = callable_(
-        key, triangles.reshape(-1, 3), origins, directions, output_dims={"faces": num_rays}
+        key,
+        triangles.reshape(-1, 3),
+        origins,
+        directions,
+        valid.astype(jnp.int32),
+        output_dims={"faces": origins.shape[0]},
     )
     return faces
 
 
-def nearest_triangle(engine: str, triangles: Array, origins: Array, directions: Array) -> Array:
+def nearest_triangle(
+    engine: str, triangles: Array, origins: Array, directions: Array, valid: Array
+) -> Array:
     """Index (R,) int32 of the triangle each ray hits first, -1 on a miss, for "embree" / "warp".
 
     Args:
         engine: "embree" or "warp" (resolved; see :func:`resolve_engine`).
-        triangles: (T, 3, 3) float32 vertices, world frame; padding rows never hit (all-zero, so
-            degenerate) and are also rejected by the caller.
-        origins: (R, 3) float32, finite (the caller masks the rays that must miss).
+        triangles: (T, 3, 3) float32 vertices, world frame; all-zero padding rows are left out.
+        origins: (R, 3) float32, finite.
         directions: (R, 3) float32 finite unit directions.
+        valid: (R,) bool; the other rays are not traced and miss.
     """
     search = _embree_search if engine == "embree" else _warp_search
-    return search(fingerprint(triangles), triangles, origins, directions)
+    return search(fingerprint(triangles), triangles, origins, directions, valid)
 
 
 def clear_caches() -> None:
     """Drop every cached Embree scene and Warp mesh (they are rebuilt on next use)."""
-    _embree_scenes.clear()
+    _embree_maps.clear()
     if is_installed("warp") and _warp.cache_info().currsize:
         _warp()[1].clear()

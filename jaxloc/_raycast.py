@@ -339,7 +339,7 @@ def hit_triangles(
     if num == 0:
         return jnp.zeros((0,), jnp.int32)
     if engine != "jax":
-        triangle = nearest_triangle(engine, scene.triangles, origins, directions)
+        triangle = nearest_triangle(engine, scene.triangles, origins, directions, valid)
         real = scene.triangle_object[jnp.clip(triangle, 0, scene.triangles.shape[0] - 1)] >= 0
         return jnp.where(valid & (triangle >= 0) & real, triangle, -1)
     origins = jnp.where(valid[:, None], origins, jnp.nan)  # the traversal retires NaN rays
