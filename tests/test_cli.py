@@ -317,10 +317,18 @@ TINY_SG2LOC = ["--frames", "2", "--particles", "32", "--width", "112", "--height
 
 def test_demo_tiny(tmp_path, capsys):
     figure = tmp_path / "demo.png"
-    code, out, err = run(["demo", *TINY_SG2LOC, "--out", figure], capsys)
+    code, out, err = run(["demo", *TINY_SG2LOC, "--strides", "8,8", "--out", figure], capsys)
     assert code == 0, err
     assert re.search(r"frame 2: position error \d+\.\d+ m", out)
     assert figure.read_bytes().startswith(b"\x89PNG")
+
+
+def test_demo_rejects_bad_strides(capsys):
+    for bad in ("20,0", "20,x", ""):
+        with pytest.raises(SystemExit) as exit_info:
+            main(["demo", "--strides", bad])
+        assert exit_info.value.code == 2
+        assert "want positive integers like 20,8,4" in capsys.readouterr().err
 
 
 def test_bench_filter_tiny(capsys):

@@ -112,6 +112,17 @@ networkx) are the scripts in benchmarks/ of the repository.
 """
 
 
+def _strides(text: str) -> tuple[int, ...]:
+    """``--strides 20,8,4``: positive pixel strides, one per round."""
+    try:
+        strides = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        strides = ()
+    if not strides or min(strides) < 1:
+        raise argparse.ArgumentTypeError(f"want positive integers like 20,8,4, got {text!r}")
+    return strides
+
+
 def _add_triplet_options(
     parser: argparse.ArgumentParser, scales: int | None, k: int | None
 ) -> None:
@@ -180,10 +191,16 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=1, help="room and sequence seed (default 1)")
     demo.add_argument("--frames", type=int, default=6, help="frames in the sequence (default 6)")
     demo.add_argument(
-        "--particles", type=int, default=1000, help="particle capacity (default 1000)"
+        "--particles", type=int, default=2500, help="particle capacity (default 2500, the paper's)"
     )
-    demo.add_argument("--width", type=int, default=160, help="image width, pixels (default 160)")
-    demo.add_argument("--height", type=int, default=90, help="image height, pixels (default 90)")
+    demo.add_argument("--width", type=int, default=960, help="image width, pixels (default 960)")
+    demo.add_argument("--height", type=int, default=540, help="image height, pixels (default 540)")
+    demo.add_argument(
+        "--strides",
+        type=_strides,
+        default=(20, 8, 4),
+        help="pixel stride of each coarse-to-fine round (default 20,8,4, the paper's)",
+    )
     demo.add_argument("--out", type=Path, default=Path("jaxloc_demo.png"), help="figure path (PNG)")
 
     lidar = commands.add_parser(

@@ -56,8 +56,8 @@ def run_demo(args: argparse.Namespace) -> int:
         )
     sg2loc_config = SG2LocConfig(
         capacity=args.particles,
-        strides=(8, 8),
-        kld=KLDConfig(min_particles=min(300, args.particles), max_particles=args.particles),
+        strides=args.strides,
+        kld=KLDConfig(min_particles=min(500, args.particles), max_particles=args.particles),
     )
     result = localize(
         jax.random.key(args.seed), scene, episode.sequence, sg2loc_config, progress=True
