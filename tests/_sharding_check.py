@@ -116,9 +116,9 @@ def engine_call_checks(mesh) -> dict:
     calls = []
     host = _engines._embree_host
 
-    def counting(key, triangles, origins, directions):
+    def counting(key, triangles, origins, directions, valid):
         calls.append(int(np.prod(np.shape(origins)[:-1])))
-        return host(key, triangles, origins, directions)
+        return host(key, triangles, origins, directions, valid)
 
     _engines._embree_host = counting
     try:
