@@ -142,6 +142,8 @@ class _EmbreeMap:
         from embreex.mesh_construction import TriangleMesh
 
         self.ids = real_triangles(triangles).astype(np.int32)
+        # Maps pad at the end, so the real triangles are usually 0..K-1: no index translation.
+        self.prefix = bool(np.array_equal(self.ids, np.arange(self.ids.size)))
         try:  # robust (watertight) traversal: no ray slips between two triangles sharing an edge
             self.scene = rtcore_scene.EmbreeScene(robust=True)
         except TypeError:  # embreex 2.x (Embree 2) has no robust flag
@@ -163,7 +165,7 @@ class _EmbreeMap:
 
         def run(part: slice) -> None:
             found = self.scene.run(origins[part], directions[part])
-            faces[part] = np.where(found >= 0, self.ids[np.maximum(found, 0)], -1)
+            faces[part] = found if self.prefix else np.where(found >= 0, self.ids[found], -1)
 
         if parts == 1:
             run(slice(0, num))
@@ -222,10 +224,10 @@ def _embree_host(key, triangles, origins, directions, valid):
     faces = np.full(size * num_rays, -1, np.int32)
     for fp, members in groups.items():
         embree_map = _embree_maps.get(("cpu", triangles.shape[1], fp), triangles[members[0]])
-        rows = np.arange(size * num_rays).reshape(size, num_rays)[members].reshape(-1)
         if len(members) == size and valid.all():  # the usual case: no gather, no scatter
             faces[:] = embree_map.nearest(origins, directions)
             continue
+        rows = (np.asarray(members)[:, None] * num_rays + np.arange(num_rays)).reshape(-1)
         rays = rows[valid[rows]]
         faces[rays] = embree_map.nearest(origins[rays], directions[rays])
     return faces.reshape(lead + (num_rays,))
