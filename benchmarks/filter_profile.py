@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from filter_step import BOX_HALF_WIDTHS, FULL_PARTICLES, load_data, make_data  # noqa: E402
+from filter_step import FULL_PARTICLES, initial_state, load_data, make_data  # noqa: E402
 from raycast import render_order_rays  # noqa: E402
 
 from jaxloc import raycast, render_batch  # noqa: E402
@@ -41,8 +41,6 @@ from jaxloc._render import PACKET_SIZE  # noqa: E402
 from jaxloc.camera import stride_grid  # noqa: E402
 from jaxloc.filter import Region, StepConfig, frames_on_grid, step  # noqa: E402
 from jaxloc.particles import (
-    init_box,
-    init_region,
     inject_uniform,
     mle,
     update_weights,
@@ -83,11 +81,7 @@ def profile_stride(scene, seq, poses_gt, stride, round_index, args):
         particle_chunk=args.chunk,
     )
     key = jax.random.key(0)
-    if round_index == 0:
-        state = init_region(key, args.particles, region.lo, region.hi, region.floor_z)
-    else:
-        half = BOX_HALF_WIDTHS[min(round_index, len(BOX_HALF_WIDTHS)) - 1]
-        state = init_box(key, args.particles, jnp.asarray(poses_gt[0]), jnp.full((3,), half))
+    state = initial_state(key, args.particles, round_index, region, poses_gt[0])
     frames = frames_on_grid(seq, grid)
     frame0, frame1 = (jax.tree.map(lambda a, t=t: a[t], frames) for t in (0, 1))
     compiled_step = jax.jit(step).lower(key, state, frame0, scene, config).compile()

@@ -155,6 +155,19 @@ def device_peak_mib():
     return stats["peak_bytes_in_use"] / 2**20
 
 
+def initial_state(key, particles: int, round_index: int, region, first_pose):
+    """Round 0: the paper's floor initialisation; later rounds: its box around the true first
+    pose (half-widths :data:`BOX_HALF_WIDTHS`)."""
+    import jax.numpy as jnp
+
+    from jaxloc.particles import init_box, init_region
+
+    if round_index == 0:
+        return init_region(key, particles, region.lo, region.hi, region.floor_z)
+    half = BOX_HALF_WIDTHS[min(round_index, len(BOX_HALF_WIDTHS)) - 1]
+    return init_box(key, particles, jnp.asarray(first_pose), jnp.full((3,), half))
+
+
 def run_case(args: argparse.Namespace) -> dict:
     """Compile and time one step configuration (runs in the child process)."""
     import jax
@@ -162,7 +175,6 @@ def run_case(args: argparse.Namespace) -> dict:
 
     from jaxloc.camera import patch_grid, stride_grid
     from jaxloc.filter import Region, StepConfig, frames_on_grid, step
-    from jaxloc.particles import init_box, init_region
     from jaxloc.resample import KLDConfig
     from jaxloc.scores import ObservationConfig
 
@@ -188,11 +200,7 @@ def run_case(args: argparse.Namespace) -> dict:
     )
     key = jax.random.key(0)
     round_index = strides.index(int(value)) if kind == "stride" else 0
-    if round_index == 0:
-        state = init_region(key, args.particles, region.lo, region.hi, region.floor_z)
-    else:
-        half = BOX_HALF_WIDTHS[min(round_index, len(BOX_HALF_WIDTHS)) - 1]
-        state = init_box(key, args.particles, jnp.asarray(poses_gt[0]), jnp.full((3,), half))
+    state = initial_state(key, args.particles, round_index, region, poses_gt[0])
     frames = frames_on_grid(seq, grid)
     frame_at = [jax.tree.map(lambda a, t=t: a[t], frames) for t in range(seq.num_frames)]
     active_at_start = int(jnp.sum(state.active))
