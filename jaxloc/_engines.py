@@ -17,7 +17,8 @@ pattern: a fast engine picks, JAX differentiates).
 
 The engines' acceleration structures are built on first use of a map and cached, keyed by a
 fingerprint of the triangles that the traced program computes (a 64-bit integer hash of their
-bits): editing a map's triangles gives a new fingerprint, so a stale structure is never used.
+bits): editing a map's triangles gives a new fingerprint, so a stale structure is never used. They
+hold the map's real triangles only (not its all-zero padding), and only the valid rays are traced.
 """
 
 from __future__ import annotations
