@@ -65,6 +65,12 @@ class Region(eqx.Module):
 CHUNK_RAYS = 2**20
 
 
+def check_particle_chunk(chunk: int | None) -> None:
+    """Raise a ValueError unless ``chunk`` is a positive int or None (for configs)."""
+    if chunk is not None and (not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"particle_chunk must be a positive int or None, got {chunk!r}")
+
+
 class StepConfig(eqx.Module):
     """Everything one filter step needs besides the state, the frame and the map.
 
@@ -107,9 +113,7 @@ class StepConfig(eqx.Module):
 
     def __check_init__(self) -> None:
         check_engine_name(self.engine)
-        chunk = self.particle_chunk
-        if chunk is not None and (not isinstance(chunk, int) or chunk < 1):
-            raise ValueError(f"particle_chunk must be a positive int or None, got {chunk!r}")
+        check_particle_chunk(self.particle_chunk)
 
     def chunk_size(self, capacity: int) -> int:
         """Particles per chunk for a buffer of ``capacity`` slots (static)."""

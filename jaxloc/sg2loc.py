@@ -23,7 +23,15 @@ from tqdm.auto import tqdm
 from jaxloc._convert import as_float32
 from jaxloc._engines import check_engine_name
 from jaxloc.camera import stride_grid
-from jaxloc.filter import Region, StepConfig, StepInfo, frames_on_grid, run_pass, step
+from jaxloc.filter import (
+    Region,
+    StepConfig,
+    StepInfo,
+    check_particle_chunk,
+    frames_on_grid,
+    run_pass,
+    step,
+)
 from jaxloc.geometry import uncompose_yaw
 from jaxloc.particles import DEFAULT_BOX_YAW_HALF_RANGE, PAPER_HEIGHTS, init_box, init_region
 from jaxloc.resample import KLDConfig
@@ -76,9 +84,7 @@ class SG2LocConfig(eqx.Module):
 
     def __check_init__(self):
         check_engine_name(self.engine)
-        chunk = self.particle_chunk
-        if chunk is not None and (not isinstance(chunk, int) or chunk < 1):
-            raise ValueError(f"particle_chunk must be a positive int or None, got {chunk!r}")
+        check_particle_chunk(self.particle_chunk)
         if not isinstance(self.capacity, int) or self.capacity < 1:
             raise ValueError(f"capacity must be a positive int, got {self.capacity!r}")
         if len(self.strides) < 1 or any(int(s) < 1 for s in self.strides):
