@@ -48,6 +48,8 @@ CONFIGS = {
     "m2loc3": lambda: m2loc_config(3, robust=False),
     "m2loc3-robust": lambda: m2loc_config(3, robust=True),
     "m2loc3-robust-k50": lambda: m2loc_config(3, robust=True, top_k=50),
+    "m2loc3-hyp256": lambda: m2loc_config(3, hypotheses=256, registration_attempts=1),
+    "m2loc3-hyp4096": lambda: m2loc_config(3, hypotheses=4096, registration_attempts=1),
 }
 
 

@@ -106,6 +106,8 @@ def analyse(name, points, labels, normals, args) -> dict:
         config = dataclasses.replace(config, one_to_one=True)
     if args.attempts > 1:
         config = dataclasses.replace(config, registration_attempts=args.attempts)
+    if args.hypotheses:
+        config = dataclasses.replace(config, hypotheses=args.hypotheses)
     if args.soft_bins:
         descriptor = dataclasses.replace(config.descriptor, soft_bins=True)
         config = dataclasses.replace(config, descriptor=descriptor)
@@ -189,6 +191,7 @@ def options_text(args) -> str:
         ("soft bins", args.soft_bins),
         ("one-to-one", args.one_to_one),
         (f"{args.attempts} attempts", args.attempts > 1),
+        (f"{args.hypotheses} hypotheses", args.hypotheses > 0),
     ]
     return "".join(f", {name}" for name, on in names if on)
 
@@ -207,6 +210,7 @@ def write_table(summaries: list[dict], args) -> str:
         + (" --soft-bins" if args.soft_bins else "")
         + (" --one-to-one" if args.one_to_one else "")
         + (f" --attempts {args.attempts}" if args.attempts > 1 else "")
+        + (f" --hypotheses {args.hypotheses}" if args.hypotheses else "")
         + (f" --maps {' '.join(args.maps)}" if args.maps != DEFAULT_MAPS else "")
         + "`",
         "",
@@ -242,6 +246,7 @@ def main() -> None:
     parser.add_argument("--soft-bins", action="store_true", help="DescriptorConfig.soft_bins")
     parser.add_argument("--one-to-one", action="store_true", help="TripletConfig.one_to_one")
     parser.add_argument("--attempts", type=int, default=1, help="registration_attempts")
+    parser.add_argument("--hypotheses", type=int, default=0, help="TripletConfig.hypotheses")
     parser.add_argument("--suffix", default="", help="output file name suffix")
     args = parser.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)

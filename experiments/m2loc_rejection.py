@@ -30,13 +30,22 @@ from jaxloc.triplet import (
 )
 
 OUT = Path(__file__).resolve().parents[1] / "experiments" / "results" / "m2loc"
-#: Configurations, thresholds applied offline (min_inlier_fraction 0 while running); the retries
-#: of "m2loc3-robust" use their own trigger (retry_inlier_fraction 0.5), so the table still holds.
+#: Configurations, thresholds applied offline (min_inlier_fraction 0 while running); the
+#: hypotheses of "m2loc3-robust" (and the retries of "m2loc3-retry3") use their own trigger
+#: (retry_inlier_fraction 0.5), so the table still holds.
 CONFIGS = {
     "tripletloc": lambda: tripletloc_config(query_capacity=64, min_inlier_fraction=0.0),
     "m2loc3": lambda: m2loc_config(3, robust=False, query_capacity=64, min_inlier_fraction=0.0),
     "m2loc3-robust": lambda: m2loc_config(
         3, robust=True, query_capacity=64, min_inlier_fraction=0.0
+    ),
+    "m2loc3-retry3": lambda: m2loc_config(
+        3,
+        robust=True,
+        registration_attempts=3,
+        hypotheses=0,
+        query_capacity=64,
+        min_inlier_fraction=0.0,
     ),
 }
 

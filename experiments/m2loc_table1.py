@@ -44,13 +44,16 @@ ROWS = {
     "TripletLoc": lambda: tripletloc_config(**COMMON),
     "Multi-3-En": lambda: m2loc_config(3, robust=False, **COMMON),
     "Multi-2-En": lambda: m2loc_config(2, robust=False, **COMMON),
-    # the small-scan options of experiments/m2loc_losses.py (one-to-one cliques, 3 attempts)
+    # the small-scan options of experiments/m2loc_losses.py: the library default (one-to-one
+    # cliques, 256 verified hypotheses) and session 7's (one-to-one cliques, 3 attempts)
     "Multi-3-En-R": lambda: m2loc_config(3, robust=True, **COMMON),
-    "Multi-3-En-R-k50": lambda: m2loc_config(3, robust=True, top_k=50, **COMMON),
+    "Multi-3-En-R3": lambda: m2loc_config(
+        3, robust=True, registration_attempts=3, hypotheses=0, **COMMON
+    ),
 }
 
 #: Display order (ROWS builds Multi-3 first so Multi-2 reuses its first two scales).
-ORDER = ("TripletLoc", "Multi-2-En", "Multi-3-En", "Multi-3-En-R", "Multi-3-En-R-k50")
+ORDER = ("TripletLoc", "Multi-2-En", "Multi-3-En", "Multi-3-En-R3", "Multi-3-En-R")
 
 
 def maps():

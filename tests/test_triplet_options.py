@@ -70,6 +70,7 @@ def config(attempts: int):
         query_capacity=32,
         one_to_one=True,
         registration_attempts=attempts,
+        hypotheses=0,
         min_inlier_fraction=0.0,
     )
 

@@ -3,12 +3,19 @@
 Pipeline: instances from labelled points (:func:`cluster_instances`) -> multi-scale triplet
 descriptors (:func:`describe_points`, :func:`describe_map`) -> per-class top-k matching
 (:func:`match_descriptors`) -> consistency graph (:func:`consistency_graph`) -> maximum clique
-(:func:`max_clique`) with M2Loc's dynamic enhancement -> Kabsch + robust refinement with the
+(:func:`max_clique`) with M2Loc's dynamic enhancement (and, for small scans, verified clique
+hypotheses: :func:`best_verified_clique`) -> Kabsch + robust refinement with the
 road-surface-normal prior (:func:`register`). User entry points: :func:`build_map` (saved
 with :func:`save_triplet_map`, loaded with :func:`load_triplet_map`) and :func:`localize_scan`.
 """
 
-from jaxloc.triplet._clique import max_clique, max_clique_exact, max_clique_with_info
+from jaxloc.triplet._clique import (
+    greedy_cliques,
+    max_clique,
+    max_clique_exact,
+    max_clique_with_info,
+    unpack_ranked,
+)
 from jaxloc.triplet._clusters import (
     ClusterConfig,
     Instances,
@@ -23,6 +30,12 @@ from jaxloc.triplet._descriptors import (
     describe_map,
     describe_points,
     vertex_descriptor,
+)
+from jaxloc.triplet._hypotheses import (
+    MapGrid,
+    best_verified_clique,
+    grid_verified_fraction,
+    map_grid,
 )
 from jaxloc.triplet._io import (
     GRAPH_CLASSES,
@@ -59,6 +72,7 @@ from jaxloc.triplet._pipeline import (
     m2loc_config,
     register_query,
     tripletloc_config,
+    verified_fraction,
 )
 from jaxloc.triplet._registration import point_residuals, register, up_axis_prior, weighted_kabsch
 from jaxloc.triplet._sequence import (
@@ -83,11 +97,13 @@ __all__ = [
     "LidarMaps",
     "LidarSequence",
     "LocalizationResult",
+    "MapGrid",
     "MapBuildConfig",
     "QueryOutput",
     "RoadNormals",
     "TripletConfig",
     "TripletMap",
+    "best_verified_clique",
     "build_lidar_maps",
     "build_map",
     "class_positions",
@@ -99,6 +115,8 @@ __all__ = [
     "euclidean_clusters",
     "fit_plane",
     "fuse_instances",
+    "greedy_cliques",
+    "grid_verified_fraction",
     "is_sequence_dir",
     "load_instance_map",
     "load_lidar_sequence",
@@ -108,6 +126,7 @@ __all__ = [
     "localization_errors",
     "localize_scan",
     "m2loc_config",
+    "map_grid",
     "match_descriptors",
     "max_clique",
     "max_clique_exact",
@@ -122,7 +141,9 @@ __all__ = [
     "semantickitti_class_ids",
     "summarize_localization",
     "tripletloc_config",
+    "unpack_ranked",
     "up_axis_prior",
+    "verified_fraction",
     "vertex_descriptor",
     "voxel_downsample",
     "weighted_kabsch",

@@ -121,6 +121,57 @@ def _greedy_from_every_vertex(bits: Array, members: Array) -> Array:
     return cliques[jnp.argmax(jnp.sum(cliques, axis=1))]
 
 
+def greedy_cliques(adjacency: Array, valid: Array) -> tuple[Array, Array]:
+    """One greedy clique grown from every valid vertex of a symmetric graph (traceable).
+
+    Each step adds the candidate of highest degree (ties: lowest index); candidates are the
+    common neighbours of the clique so far. The vertices are ranked by degree first, so that
+    candidate is the lowest set bit of the packed candidate set and a step costs ``n / 32`` words
+    per seed, not ``n``.
+
+    Args:
+        adjacency: (n, n) bool, symmetric, False on the diagonal and for invalid vertices (e.g.
+            from :func:`consistency_graph`).
+        valid: (n,) bool.
+
+    Returns:
+        ``(cliques, order)``: cliques (n_pad, n_pad // 32) uint32 packed bitsets in ranked
+        order (row r is the clique grown from vertex ``order[r]``; bit c stands for vertex
+        ``order[c]``; empty for invalid seeds and padding), order (n_pad,) int32 the ranking (ids
+        >= n are padding). Unpack a row with :func:`unpack_ranked`.
+    """
+    n = adjacency.shape[0]
+    n_pad = -(-n // _WORD) * _WORD
+    a = jnp.pad(adjacency, ((0, n_pad - n), (0, n_pad - n)))
+    valid = jnp.pad(valid, (0, n_pad - n))
+    degree = jnp.where(valid, jnp.sum(a, axis=1, dtype=jnp.int32), -1)
+    order = jnp.argsort(-degree, stable=True).astype(jnp.int32)
+    bits = _pack(a[order][:, order])
+    words = jnp.arange(n_pad // _WORD)
+
+    def with_bit(set_bits, v):
+        return set_bits | jnp.where(words == v // _WORD, jnp.uint32(1) << (v % _WORD), 0)
+
+    def grow(seed):
+        def body(state):
+            clique, candidates = state
+            v = _lowest_bit(candidates)
+            return with_bit(clique, v), candidates & bits[v]
+
+        empty = jnp.zeros(n_pad // _WORD, jnp.uint32)
+        start = jnp.where(valid[order[seed]], with_bit(empty, seed), empty)
+        candidates = jnp.where(valid[order[seed]], bits[seed], empty)
+        clique, _ = jax.lax.while_loop(lambda s: jnp.any(s[1] != 0), body, (start, candidates))
+        return clique
+
+    return jax.vmap(grow)(jnp.arange(n_pad)), order
+
+
+def unpack_ranked(clique: Array, order: Array, n: int) -> Array:
+    """A packed clique of :func:`greedy_cliques` as an (n,) bool mask over the original vertices."""
+    return jnp.zeros(order.shape[0], bool).at[order].set(_unpack(clique))[:n]
+
+
 def _pack(bits: Array) -> Array:
     """Pack (..., P) bool into (..., P // 32) uint32 words (bit b of word w is element 32 w + b)."""
     shaped = bits.reshape(*bits.shape[:-1], -1, _WORD).astype(jnp.uint32)

@@ -16,9 +16,11 @@ vertices that fix the pose out of that fraction (``verify_beyond_minimal_set``):
 in a small scan otherwise verifies itself.
 
 Small, noisy scans (``m2loc_config(robust=True)``, the default): one-to-one cliques
-(``one_to_one``) and up to 3 registration attempts (``registration_attempts``), each retry without
-the associations that agree with the poses already rejected; ``experiments/m2loc_losses.py`` shows
-where scan-sized queries lose their true correspondences and what each option changes.
+(``one_to_one``) and, when the maximum clique's pose verifies poorly, verified clique hypotheses
+(``hypotheses``: greedy cliques ranked by how much of the scan their pose explains). Optional
+registration retries (``registration_attempts``) solve again without the associations that agree
+with the poses already rejected. ``experiments/m2loc_losses.py`` shows where scan-sized queries
+lose their true correspondences and what each option changes.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from jaxloc.triplet._descriptors import (
     describe_map,
     describe_points,
 )
+from jaxloc.triplet._hypotheses import best_verified_clique, grid_verified_fraction, map_grid
 from jaxloc.triplet._io import RoadNormals
 from jaxloc.triplet._matching import consistency_graph, match_descriptors
 from jaxloc.triplet._registration import register
@@ -77,7 +80,13 @@ class TripletConfig(eqx.Module):
             another attempt drops the associations that agree with the poses tried (within
             ``verify_radius``) and solves the clique and the pose again; the attempt with the
             highest inlier fraction is kept.
-        retry_inlier_fraction: the verification level below which an attempt is retried.
+        retry_inlier_fraction: the verification level below which an attempt is retried (and
+            below which the hypotheses are searched).
+        hypotheses: 0 (default) or the number of clique hypotheses verified when the best pose
+            verifies below ``retry_inlier_fraction``: greedy cliques grown from every
+            association of the final graph, the largest distinct ones, each with a closed-form
+            pose; the best-verified one is refined and kept if it verifies better
+            (:func:`jaxloc.triplet.best_verified_clique`).
         loss: robust loss of the pose refinement (GNC-TLS, 1 m, by default).
         use_rsn: use the road-surface-normal prior when the map has RSN cells.
         rot_delta_deg: added to an RSN cell's normal std (degrees) for the prior's sigma.
@@ -93,6 +102,7 @@ class TripletConfig(eqx.Module):
     one_to_one: bool = eqx.field(static=True, default=False)
     registration_attempts: int = eqx.field(static=True, default=1)
     retry_inlier_fraction: float = eqx.field(static=True, default=0.5)
+    hypotheses: int = eqx.field(static=True, default=0)
     min_clique: int = eqx.field(static=True, default=10)
     min_inliers: int = eqx.field(static=True, default=3)
     min_inlier_fraction: float = eqx.field(static=True, default=0.5)
@@ -116,6 +126,8 @@ class TripletConfig(eqx.Module):
             raise ValueError("consistency_threshold must be > 0")
         if self.registration_attempts < 1 or not 0.0 <= self.retry_inlier_fraction <= 1.0:
             raise ValueError("registration_attempts >= 1 and retry_inlier_fraction in [0, 1]")
+        if self.hypotheses < 0:
+            raise ValueError(f"hypotheses must be >= 0, got {self.hypotheses}")
         if not 0.0 <= self.min_inlier_fraction <= 1.0 or not self.verify_radius > 0:
             raise ValueError("min_inlier_fraction must be in [0, 1] and verify_radius > 0")
         check_clique_sizes(self.clique_compact_size, self.clique_greedy_tiers)
@@ -138,15 +150,16 @@ def m2loc_config(
     check on the evidence beyond the pose's minimal set (``verify_beyond_minimal_set=True``).
 
     ``robust`` (default True) adds what helps small, noisy scans most in our measurements
-    (``experiments/results/m2loc/losses*.md``, ``table1.md``): one-to-one cliques and up to 3
-    registration attempts (``one_to_one=True, registration_attempts=3``); ``robust=False`` is the
-    paper's M2Loc. ``overrides`` win over both."""
+    (``experiments/results/m2loc/losses*.md``, ``hypotheses.md``, ``table1.md``): one-to-one
+    cliques and, when the maximum clique's pose verifies poorly, 256 verified clique hypotheses
+    (``one_to_one=True, hypotheses=256``); ``robust=False`` is the paper's M2Loc. ``overrides``
+    win over both (``registration_attempts=3, hypotheses=0`` is session 7's robust setting)."""
     descriptor = DescriptorConfig(
         scale_edges=tuple(scale_edges[:num_scales]), length_feature=length_feature
     )
     defaults = {"verify_beyond_minimal_set": True}
     if robust:
-        defaults.update(one_to_one=True, registration_attempts=3)
+        defaults.update(one_to_one=True, hypotheses=256)
     return TripletConfig(descriptor=descriptor, **{**defaults, **overrides})
 
 
@@ -450,6 +463,25 @@ def register_query(
 
         start = (jnp.int32(first_scale) - 1, jnp.zeros_like(usable), jnp.array(False))
         scale, clique, exact = jax.lax.while_loop(keep_going, next_scale, start)
+        return clique, exact, scale, *pose_of(clique)
+
+    discount = MINIMAL_SET if config.verify_beyond_minimal_set else 0
+
+    def verify(matrix):
+        return verified_fraction(
+            matrix,
+            points,
+            classes,
+            mask,
+            triplet_map.points,
+            triplet_map.classes,
+            config.verify_radius,
+            discount=discount,
+        )
+
+    def pose_of(clique):
+        """Robust pose of a clique (A,) bool and its verification: (ok, T (4, 4) centred,
+        fraction)."""
         normal, sigma = None, None
         if triplet_map.has_rsn and config.use_rsn:
             weight = clique.astype(jnp.float32)
@@ -471,17 +503,7 @@ def register_query(
             max_steps=config.solver_steps,
         )
         matrix = solution.pose.as_matrix()
-        fraction = verified_fraction(
-            matrix,
-            points,
-            classes,
-            mask,
-            triplet_map.points,
-            triplet_map.classes,
-            config.verify_radius,
-            discount=MINIMAL_SET if config.verify_beyond_minimal_set else 0,
-        )
-        return clique, exact, scale, solution.ok, matrix, fraction
+        return solution.ok, matrix, verify(matrix)
 
     if config.registration_attempts == 1:
         clique, exact, scale, solved, matrix, fraction = attempt(assoc_valid)
@@ -519,6 +541,34 @@ def register_query(
         start = (jnp.int32(0), assoc_valid, jnp.int32(0), empty)
         *_, best = jax.lax.while_loop(again, retry, start)
         clique, exact, scale, solved, matrix, fraction = best
+    if config.hypotheses:
+        # The best pose still verifies poorly: rank the greedy cliques of its final graph by the
+        # verification of their closed-form poses and refine the best one.
+        def search(best):
+            usable = assoc_valid & (assoc_scale <= best[2])
+            ends = (assoc_query, assoc_map) if config.one_to_one else (None, None)
+            adjacency = consistency_graph(
+                query_xyz, map_xyz, usable, config.consistency_threshold, *ends
+            )
+            grid = map_grid(triplet_map.points, triplet_map.classes, config.verify_radius)
+
+            def verify_fast(matrix):
+                return grid_verified_fraction(
+                    matrix, points, classes, mask, grid, config.verify_radius, discount
+                )
+
+            found, _ = best_verified_clique(
+                adjacency, usable, query_xyz, map_xyz, verify_fast, config.hypotheses
+            )
+            result = (found, jnp.array(False), best[2], *pose_of(found))
+            better = result[5] > best[5]
+            return jax.tree.map(lambda new, old: jnp.where(better, new, old), result, best)
+
+        best = (clique, exact, scale, solved, matrix, fraction)
+        poor = fraction < config.retry_inlier_fraction
+        clique, exact, scale, solved, matrix, fraction = jax.lax.cond(
+            poor, search, lambda best: best, best
+        )
     clique_size = jnp.sum(clique)
     valid = solved & (clique_size >= config.min_inliers) & (fraction >= config.min_inlier_fraction)
     matrix = matrix.at[:3, 3].add(triplet_map.origin)
