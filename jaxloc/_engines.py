@@ -8,9 +8,10 @@ pattern: a fast engine picks, JAX differentiates).
 * ``"jax"``: the BVH traversal of :mod:`jaxloc._raycast`; portable to any backend, no optional
   dependency, the reference.
 * ``"embree"``: Intel Embree through embreex (trimesh's own binding), called from the traced
-  program with :func:`jax.pure_callback`; the rays are split over a thread pool as wide as the
-  machine (``embreex``'s ``run`` releases the GIL). Host memory: on a GPU backend the rays make a
-  round trip to the host.
+  program with ``jax.experimental.buffer_callback`` on a CPU backend (the host buffers in place,
+  no copies) and :func:`jax.pure_callback` elsewhere; the rays are split over a thread pool as
+  wide as the machine (``embreex``'s ``run`` releases the GIL). Host memory: on a GPU backend the
+  rays make a round trip to the host.
 * ``"warp"``: NVIDIA Warp's ``mesh_query_ray`` through ``warp.jax_callable`` (zero copy, CPU and
   CUDA). Warp's CPU backend runs one thread; its point is the GPU.
 * ``"auto"``: Embree on a CPU backend and Warp on a GPU backend where installed, else ``"jax"``.
@@ -34,6 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.experimental.buffer_callback import buffer_callback
 
 #: Every engine name :func:`jaxloc.raycast` accepts.
 ENGINES = ("auto", "jax", "embree", "warp")
@@ -152,13 +154,18 @@ class _EmbreeMap:
         if self.ids.size:
             TriangleMesh(self.scene, np.ascontiguousarray(triangles[self.ids], np.float32))
 
-    def nearest(self, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-        """Nearest triangle (R,) int32 (map index, -1 on a miss) of finite rays (R, 3) float32.
+    def nearest(
+        self, origins: np.ndarray, directions: np.ndarray, faces: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Nearest triangle (R,) int32 (map index, -1 on a miss) of finite rays (R, 3) float32,
+        written into ``faces`` (R,) int32 when given (and returned).
 
         The rays are cut into contiguous slices (views, no copy), traced on the thread pool.
         """
         num = origins.shape[0]
-        faces = np.full(num, -1, np.int32)
+        if faces is None:
+            faces = np.empty(num, np.int32)
+        faces[:] = -1
         if num == 0 or self.ids.size == 0:
             return faces
         parts = max(1, min(4 * embree_threads(), num // EMBREE_BATCH))
@@ -191,12 +198,13 @@ def _thread_pool() -> concurrent.futures.ThreadPoolExecutor:
     return concurrent.futures.ThreadPoolExecutor(embree_threads(), "jaxloc-embree")
 
 
-def _embree_host(key, triangles, origins, directions, valid):
+def _embree_host(key, triangles, origins, directions, valid, out=None):
     """The host side of the Embree engine, batched the ``expand_dims`` way (see pure_callback).
 
     Shapes: key (*L1, 2), triangles (*L2, T, 3, 3), origins and directions (*L3, R, 3) (finite),
     valid (*L4, R), with size-1 axes where an argument is not batched; returns (*L, R) int32 for
-    L the broadcast batch shape. Only the valid rays are traced (the others miss).
+    L the broadcast batch shape, written into ``out`` when given. Only the valid rays are traced
+    (the others miss).
     """
     # The callback receives jax Arrays: one explicit conversion each (zero-copy on CPU).
     key, triangles, origins, directions, valid = map(
@@ -222,23 +230,34 @@ def _embree_host(key, triangles, origins, directions, valid):
     groups: dict[bytes, list[int]] = {}
     for i in range(size):
         groups.setdefault(key[i].tobytes(), []).append(i)
-    faces = np.full(size * num_rays, -1, np.int32)
+    if out is None:
+        out = np.empty(lead + (num_rays,), np.int32)
+    faces = out.reshape(-1)  # a view: out is contiguous
+    faces[:] = -1
     for fp, members in groups.items():
         embree_map = _embree_maps.get(("cpu", triangles.shape[1], fp), triangles[members[0]])
         if len(members) == size and valid.all():  # the usual case: no gather, no scatter
-            faces[:] = embree_map.nearest(origins, directions)
+            embree_map.nearest(origins, directions, faces)
             continue
         rows = (np.asarray(members)[:, None] * num_rays + np.arange(num_rays)).reshape(-1)
         rays = rows[valid[rows]]
         faces[rays] = embree_map.nearest(origins[rays], directions[rays])
-    return faces.reshape(lead + (num_rays,))
+    return out
+
+
+def _embree_fill(_context, out, *args) -> None:
+    """``buffer_callback`` form of :func:`_embree_host`: writes into the output buffer."""
+    _embree_host(*args, out=np.asarray(out))
 
 
 def _embree_search(key, triangles, origins, directions, valid) -> Array:
     out = jax.ShapeDtypeStruct(origins.shape[:-1], jnp.int32)
-    return jax.pure_callback(
-        _embree_host, out, key, triangles, origins, directions, valid, vmap_method="expand_dims"
-    )
+    args = (key, triangles, origins, directions, valid)
+    if jax.default_backend() == "cpu":
+        # Host buffers in place: no copy of the rays in, none of the result out (3.24M rays:
+        # ~45 ms less than pure_callback, benchmarks/results/engines_cpu.md).
+        return buffer_callback(_embree_fill, out, vmap_method="expand_dims")(*args)
+    return jax.pure_callback(_embree_host, out, *args, vmap_method="expand_dims")
 
 
 # ------------------------------------------------------------------------------------- Warp

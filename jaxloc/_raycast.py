@@ -298,25 +298,39 @@ def _safe_normalize(v: Array) -> tuple[Array, Array]:
     return unit, ok[..., 0]
 
 
-def _differentiable_hit(origin, direction, tri, hit):
-    """Recompute (t, barycentric) of one ray on its known triangle ``tri`` (3, 3), differentiably
-    (``hit`` False: t = inf, barycentric 0).
+@jax.jit  # one compiled fusion, eager or inside a jit: the same float32 rounding either way
+def _differentiable_hit(o, d, tri, hit):
+    """Recompute (t, barycentric) of rays on their known triangles, differentiably (where ``hit``
+    is False: t = inf, barycentric 0). Coordinates are written out (lists of 3 arrays of any
+    shape ``...``), as in :func:`_moller_trumbore`: on (R,) columns XLA:CPU runs this ~2x faster
+    than a vmap over (R, 3) rows.
 
-    ``t`` uses the plane form ``n . (v0 - o) / (n . d)`` with ``n = e1 x e2``, which keeps float32
-    errors ~30x smaller than Moller-Trumbore's triple product for small, distant triangles; the
-    barycentric coordinates come from Moller-Trumbore (clipped to the triangle).
+    Args:
+        o, d: ray origins and unit directions, 3 arrays each. tri: the triangles' 9 coordinates
+            (v0, v1, v2, x y z each). hit: (...) bool.
+
+    Returns:
+        ``t`` (...) and ``barycentric`` (..., 3). ``t`` uses the plane form
+        ``n . (v0 - o) / (n . d)`` with ``n = e1 x e2``, which keeps float32 errors ~30x smaller
+        than Moller-Trumbore's triple product for small, distant triangles; the barycentric
+        coordinates come from Moller-Trumbore (clipped to the triangle).
     """
-    origin = jnp.where(hit, origin, 0.0)
-    direction = jnp.where(hit, direction, jnp.array([0.0, 0.0, 1.0], direction.dtype))
-    v0 = tri[0]
-    e1, e2 = tri[1] - v0, tri[2] - v0
-    _, u, v, _ = _moller_trumbore(origin, direction, v0, e1, e2)
-    normal = jnp.cross(e1, e2)
-    facing = jnp.dot(normal, direction)
+    o = [jnp.where(hit, c, 0.0) for c in o]
+    d = [jnp.where(hit, c, fill) for c, fill in zip(d, (0.0, 0.0, 1.0), strict=True)]
+    v0 = tri[0:3]
+    e1 = [tri[3 + a] - v0[a] for a in range(3)]
+    e2 = [tri[6 + a] - v0[a] for a in range(3)]
+    _, u, v, _ = _moller_trumbore(o, d, v0, e1, e2)
+    normal = [
+        e1[1] * e2[2] - e1[2] * e2[1],
+        e1[2] * e2[0] - e1[0] * e2[2],
+        e1[0] * e2[1] - e1[1] * e2[0],
+    ]
+    facing = sum(normal[a] * d[a] for a in range(3))
     facing = jnp.where(jnp.abs(facing) > DET_EPS, facing, 1.0)
-    t = jnp.where(hit, jnp.dot(normal, v0 - origin) / facing, jnp.inf)
+    t = jnp.where(hit, sum(normal[a] * (v0[a] - o[a]) for a in range(3)) / facing, jnp.inf)
     u, v = jnp.clip(u, 0.0, 1.0), jnp.clip(v, 0.0, 1.0)
-    bary = jnp.where(hit, jnp.stack([1.0 - u - v, u, v]), 0.0)
+    bary = jnp.where(hit[..., None], jnp.stack([1.0 - u - v, u, v], -1), 0.0)
     return t, bary
 
 
@@ -404,8 +418,14 @@ def raycast(
     )
     hit = triangle >= 0
     # Ids are in [-1, T), so the clamped gather is always in bounds.
-    vertices = scene.triangles.at[jnp.maximum(triangle, 0)].get(mode="promise_in_bounds")
-    t, bary = jax.vmap(_differentiable_hit)(o, d, vertices, hit)
+    rows = scene.triangles.reshape(-1, 9)
+    corners = rows.at[jnp.maximum(triangle, 0)].get(mode="promise_in_bounds")  # (R, 9)
+    t, bary = _differentiable_hit(
+        [o[:, a] for a in range(3)],
+        [d[:, a] for a in range(3)],
+        [corners[:, k] for k in range(9)],
+        hit,
+    )
     object_id = jnp.where(hit, scene.triangle_object[jnp.maximum(triangle, 0)], -1)
     lead = shape[:-1]
     return RayHit(

@@ -116,9 +116,9 @@ def engine_call_checks(mesh) -> dict:
     calls = []
     host = _engines._embree_host
 
-    def counting(key, triangles, origins, directions, valid):
+    def counting(key, triangles, origins, directions, valid, out=None):
         calls.append(int(np.prod(np.shape(origins)[:-1])))
-        return host(key, triangles, origins, directions, valid)
+        return host(key, triangles, origins, directions, valid, out)
 
     _engines._embree_host = counting
     try:

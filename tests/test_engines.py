@@ -242,9 +242,9 @@ def test_padding_triangles_and_invalid_rays_never_reach_embree(scene, rays, monk
     traced = []
     nearest = engines._EmbreeMap.nearest
 
-    def counting(self, origins, directions):
+    def counting(self, origins, directions, faces=None):
         traced.append((len(self.ids), origins.shape[0]))
-        return nearest(self, origins, directions)
+        return nearest(self, origins, directions, faces)
 
     monkeypatch.setattr(engines._EmbreeMap, "nearest", counting)
     o = rays[0].copy()

@@ -15,6 +15,7 @@ from jaxloc.datasets.outdoor import make_outdoor_world, make_query
 from jaxloc.triplet import (
     best_verified_clique,
     build_map,
+    closed_form_poses,
     consistency_graph,
     greedy_cliques,
     grid_verified_fraction,
@@ -227,3 +228,24 @@ def test_hypotheses_keep_the_best_verification_and_fix_rejected_poses(world):
 def test_hypotheses_must_not_be_negative():
     with pytest.raises(ValueError, match="hypotheses"):
         m2loc_config(3, hypotheses=-1)
+
+
+def test_closed_form_poses_equal_numpy_kabsch():
+    rng = np.random.default_rng(3)
+    pose = yaw_pose(rng)
+    query = rng.uniform(-30, 30, (200, 3)).astype(np.float32)
+    target = query @ pose[:3, :3].T + pose[:3, 3] + np.float32(400.0)  # far from the origin
+    target[100:] = rng.uniform(-500, 500, (100, 3))  # other subsets: unrelated points
+    masks = rng.random((16, 200)) < 0.05
+    masks[0] = False
+    masks[0, :10] = True  # an exact subset
+    masks[1] = False
+    masks[1, :2] = True  # too few points: identity
+    got = np.asarray(jax.jit(closed_form_poses)(jnp.asarray(masks), query, target))
+    for mask, matrix in zip(masks, got, strict=True):
+        if mask.sum() < 3:
+            np.testing.assert_array_equal(matrix, np.eye(4))
+            continue
+        want = numpy_kabsch(query[mask].astype(np.float64), target[mask].astype(np.float64))
+        np.testing.assert_allclose(matrix, want, atol=2e-3)
+    np.testing.assert_allclose(got[0][:3, 3], pose[:3, 3] + 400.0, atol=1e-3)

@@ -34,6 +34,7 @@ from jaxloc.triplet._descriptors import (
 from jaxloc.triplet._hypotheses import (
     MapGrid,
     best_verified_clique,
+    closed_form_poses,
     grid_verified_fraction,
     map_grid,
 )
@@ -107,6 +108,7 @@ __all__ = [
     "build_lidar_maps",
     "build_map",
     "class_positions",
+    "closed_form_poses",
     "cluster_instances",
     "consistency_graph",
     "describe_map",

