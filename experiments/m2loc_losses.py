@@ -100,7 +100,12 @@ def true_clique_size(query, pairs: list[tuple[int, int]], map_points, threshold)
 
 def analyse(name, points, labels, normals, args) -> dict:
     config = m2loc_config(
-        3, robust=False, query_capacity=CAPACITY, min_inlier_fraction=0.0, top_k=args.k
+        3,
+        robust=False,
+        query_capacity=CAPACITY,
+        min_inlier_fraction=0.0,
+        min_verified=0,
+        top_k=args.k,
     )
     if args.one_to_one:
         config = dataclasses.replace(config, one_to_one=True)

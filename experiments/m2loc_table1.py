@@ -39,7 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "helipr_instance_maps"
 OUT = ROOT / "experiments" / "results" / "m2loc"
 # Table I as in the paper: no place-not-in-the-map check (every query is from the map).
-COMMON = dict(query_capacity=64, min_inlier_fraction=0.0)
+COMMON = dict(query_capacity=64, min_inlier_fraction=0.0, min_verified=0)
 ROWS = {
     "TripletLoc": lambda: tripletloc_config(**COMMON),
     "Multi-3-En": lambda: m2loc_config(3, robust=False, **COMMON),

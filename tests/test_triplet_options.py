@@ -72,6 +72,7 @@ def config(attempts: int):
         registration_attempts=attempts,
         hypotheses=0,
         min_inlier_fraction=0.0,
+        min_verified=0,
     )
 
 

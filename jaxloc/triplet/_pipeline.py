@@ -70,6 +70,9 @@ class TripletConfig(eqx.Module):
         min_inlier_fraction: place-not-in-the-map rejection: after registration, the fraction of
             the scan's vertices that land within ``verify_radius`` of a map vertex of their class
             must reach this (0 disables; see ``experiments/results/m2loc/rejection.md``).
+        min_verified: fewer verified scan vertices than this (beyond those counted out by
+            ``verify_beyond_minimal_set``) gives ``valid = False``, whatever the fraction: in a
+            7-vertex scan 3 chance fits make 75 % (default 0; ``m2loc_config``: 4).
         verify_radius: metres, the verification radius.
         verify_beyond_minimal_set: leave the 3 vertices a pose is determined by out of that
             fraction, ``(verified - 3) / (n - 3)``: they fit the pose by construction, and in a
@@ -87,6 +90,9 @@ class TripletConfig(eqx.Module):
             association of the final graph, the largest distinct ones, each with a closed-form
             pose; the best-verified one is refined and kept if it verifies better
             (:func:`jaxloc.triplet.best_verified_clique`).
+        hypothesis_min_support: a pose from the hypotheses is kept only if it verifies at least
+            this many scan vertices beyond those counted out by ``verify_beyond_minimal_set``
+            (the best of many poses fits a small scan by chance far more often than one pose).
         loss: robust loss of the pose refinement (GNC-TLS, 1 m, by default).
         use_rsn: use the road-surface-normal prior when the map has RSN cells.
         rot_delta_deg: added to an RSN cell's normal std (degrees) for the prior's sigma.
@@ -103,9 +109,11 @@ class TripletConfig(eqx.Module):
     registration_attempts: int = eqx.field(static=True, default=1)
     retry_inlier_fraction: float = eqx.field(static=True, default=0.5)
     hypotheses: int = eqx.field(static=True, default=0)
+    hypothesis_min_support: int = eqx.field(static=True, default=6)
     min_clique: int = eqx.field(static=True, default=10)
     min_inliers: int = eqx.field(static=True, default=3)
     min_inlier_fraction: float = eqx.field(static=True, default=0.5)
+    min_verified: int = eqx.field(static=True, default=0)
     verify_radius: float = eqx.field(static=True, default=1.5)
     verify_beyond_minimal_set: bool = eqx.field(static=True, default=False)
     loss: RobustLoss = RobustLoss("gnc_tls", 1.0)
@@ -126,8 +134,8 @@ class TripletConfig(eqx.Module):
             raise ValueError("consistency_threshold must be > 0")
         if self.registration_attempts < 1 or not 0.0 <= self.retry_inlier_fraction <= 1.0:
             raise ValueError("registration_attempts >= 1 and retry_inlier_fraction in [0, 1]")
-        if self.hypotheses < 0:
-            raise ValueError(f"hypotheses must be >= 0, got {self.hypotheses}")
+        if min(self.hypotheses, self.hypothesis_min_support, self.min_verified) < 0:
+            raise ValueError("hypotheses, hypothesis_min_support and min_verified must be >= 0")
         if not 0.0 <= self.min_inlier_fraction <= 1.0 or not self.verify_radius > 0:
             raise ValueError("min_inlier_fraction must be in [0, 1] and verify_radius > 0")
         check_clique_sizes(self.clique_compact_size, self.clique_greedy_tiers)
@@ -157,7 +165,7 @@ def m2loc_config(
     descriptor = DescriptorConfig(
         scale_edges=tuple(scale_edges[:num_scales]), length_feature=length_feature
     )
-    defaults = {"verify_beyond_minimal_set": True}
+    defaults = {"verify_beyond_minimal_set": True, "min_verified": 4}
     if robust:
         defaults.update(one_to_one=True, hypotheses=256)
     return TripletConfig(descriptor=descriptor, **{**defaults, **overrides})
@@ -561,7 +569,12 @@ def register_query(
                 adjacency, usable, query_xyz, map_xyz, verify_fast, config.hypotheses
             )
             result = (found, jnp.array(False), best[2], *pose_of(found))
-            better = result[5] > best[5]
+            # Picking the best of many poses favours chance fits in small scans (6 of 231
+            # foreign scans of experiments/m2loc_rejection.py verified >= 0.5 with 2-3 vertices
+            # beyond the minimal set): a searched pose must also verify enough vertices.
+            support = result[5] * jnp.maximum(jnp.sum(mask) - discount, 1)
+            enough = support >= config.hypothesis_min_support - 0.5  # counts, in float32
+            better = enough & (result[5] > best[5])
             return jax.tree.map(lambda new, old: jnp.where(better, new, old), result, best)
 
         best = (clique, exact, scale, solved, matrix, fraction)
@@ -570,7 +583,13 @@ def register_query(
             poor, search, lambda best: best, best
         )
     clique_size = jnp.sum(clique)
-    valid = solved & (clique_size >= config.min_inliers) & (fraction >= config.min_inlier_fraction)
+    support = fraction * jnp.maximum(jnp.sum(mask) - discount, 1)  # verified vertices, float32
+    valid = (
+        solved
+        & (clique_size >= config.min_inliers)
+        & (fraction >= config.min_inlier_fraction)
+        & (support >= config.min_verified - 0.5)
+    )
     matrix = matrix.at[:3, 3].add(triplet_map.origin)
     matrix = jnp.where(valid, matrix, jnp.eye(4, dtype=matrix.dtype))
     return QueryOutput(
