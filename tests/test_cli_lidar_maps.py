@@ -153,3 +153,18 @@ def test_save_map_path_is_checked_before_any_work(sequence_dir, built, tmp_path,
     argv = ["localize-lidar", built[0], sequence_dir, "--save-map", tmp_path / "map.txt"]
     code, _, err = run(argv, capsys)
     assert code == 2 and "must end in .npz" in err
+
+
+def test_no_robust_is_m2loc_as_published():
+    from jaxloc.cli import build_parser
+    from jaxloc.cli._lidar import triplet_config
+    from jaxloc.triplet import m2loc_config
+
+    parser = build_parser()
+    default = triplet_config(parser.parse_args(["localize-lidar", "map", "scan.bin"]))
+    published = triplet_config(
+        parser.parse_args(["localize-lidar", "map", "scan.bin", "--no-robust"])
+    )
+    assert default == m2loc_config(3)
+    assert (default.one_to_one, default.hypotheses) == (True, 256)
+    assert published == m2loc_config(3, robust=False)

@@ -1,29 +1,21 @@
-"""Verified clique hypotheses (M2Loc on small scans): greedy cliques from every vertex against a
-numpy reference, the grid verification against the brute-force one, the best-verified clique
-against a numpy search, and the pipeline option (never a worse verification, rejected poses
-replaced by right ones, one compilation)."""
+"""Verified clique hypotheses (M2Loc on small scans), the kernels: greedy cliques from every
+vertex against a numpy reference, the grid verification against the brute-force one, closed-form
+poses against numpy Kabsch, the best-verified clique against a numpy search. The pipeline option
+is tested in ``test_triplet_options.py``."""
 
 from __future__ import annotations
-
-import dataclasses
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import jaxloc.triplet._pipeline as pipeline
-from jaxloc.datasets.outdoor import make_outdoor_world, make_query
 from jaxloc.triplet import (
     best_verified_clique,
-    build_map,
     closed_form_poses,
     consistency_graph,
     greedy_cliques,
     grid_verified_fraction,
-    localization_errors,
-    localize_scan,
-    m2loc_config,
     map_grid,
     unpack_ranked,
     verified_fraction,
@@ -178,63 +170,6 @@ def test_best_verified_clique_prefers_the_pose_that_explains_the_scan():
     assert list(best_members) == [0, 1, 2, 3] and largest == 6
 
 
-@pytest.fixture(scope="module")
-def world():
-    return make_outdoor_world("sparse", seed=3, blocks=2, bridge_length=150.0)
-
-
-def config(hypotheses: int):
-    return m2loc_config(
-        2,
-        scale_edges=(20.0, 30.0),
-        query_capacity=32,
-        one_to_one=True,
-        hypotheses=hypotheses,
-        min_inlier_fraction=0.0,
-        min_verified=0,
-    )
-
-
-#: Queries of the fixture (found by a search over seed 11's first 60 queries, the retry test's)
-#: whose maximum clique gives a wrong pose, and whose verified hypotheses give the right one. The
-#: search also finds right poses for queries 0, 38 and 53, but these small scans verify fewer than
-#: ``hypothesis_min_support`` (6) vertices beyond the minimal set, so they are not kept.
-HYPOTHESES_FIXED = (14,)
-
-
-def test_hypotheses_keep_the_best_verification_and_fix_rejected_poses(world):
-    maps = {h: build_map(world.points, world.labels, config(h)) for h in (0, 64)}
-    rng = np.random.default_rng(11)
-    queries = [
-        make_query(world.points, world.labels, world.road_normals, rng, max_kept=20)
-        for _ in range(max(HYPOTHESES_FIXED) + 1)
-    ]
-    for m in maps.values():
-        localize_scan(m, None, queries[0].points, queries[0].labels)  # compile both
-    traces = dict(pipeline.TRACE_COUNTS)
-    fixed = []
-    for index, q in enumerate(queries):
-        if len(q.points) > 32:  # above the fixture's query capacity
-            continue
-        plain = localize_scan(maps[0], None, q.points, q.labels)
-        searched = localize_scan(maps[64], None, q.points, q.labels)
-        assert searched.inlier_fraction >= plain.inlier_fraction
-        if plain.inlier_fraction >= 0.5:  # verified: the search does not run
-            np.testing.assert_array_equal(searched.pose, plain.pose)
-            np.testing.assert_array_equal(searched.inliers, plain.inliers)
-        assert len(np.unique(searched.inliers[:, 0])) == len(searched.inliers)
-        before, after = (localization_errors(r.pose, q.T_map_scan)[0] for r in (plain, searched))
-        if before > 7.5 and after < 7.5:
-            fixed.append(index)
-    assert fixed == list(HYPOTHESES_FIXED)
-    assert dict(pipeline.TRACE_COUNTS) == traces  # one compilation per map
-
-
-def test_hypotheses_must_not_be_negative():
-    with pytest.raises(ValueError, match="hypotheses"):
-        m2loc_config(3, hypotheses=-1)
-
-
 def test_closed_form_poses_equal_numpy_kabsch():
     rng = np.random.default_rng(3)
     pose = yaw_pose(rng)
@@ -254,26 +189,3 @@ def test_closed_form_poses_equal_numpy_kabsch():
         want = numpy_kabsch(query[mask].astype(np.float64), target[mask].astype(np.float64))
         np.testing.assert_allclose(matrix, want, atol=2e-3)
     np.testing.assert_allclose(got[0][:3, 3], pose[:3, 3] + 400.0, atol=1e-3)
-
-
-def test_min_verified_rejects_a_pose_that_few_vertices_confirm(world):
-    """``min_verified`` counts verified vertices beyond the minimal set: a right pose of a
-    query whose count falls short is reported not valid, and the pose itself is unchanged."""
-    rng = np.random.default_rng(11)
-    loose = build_map(world.points, world.labels, config(0))
-    for _ in range(10):  # the first query of seed 11 that localizes
-        query = make_query(world.points, world.labels, world.road_normals, rng, max_kept=20)
-        result = localize_scan(loose, None, query.points, query.labels)
-        if result.valid and localization_errors(result.pose, query.T_map_scan)[0] < 7.5:
-            break
-    verified = round(result.inlier_fraction * (len(query.points) - 3))
-    assert result.valid and verified >= 3
-    strict = build_map(
-        world.points, world.labels, dataclasses.replace(config(0), min_verified=verified + 1)
-    )
-    refused = localize_scan(strict, None, query.points, query.labels)
-    assert not refused.valid and refused.inlier_fraction == result.inlier_fraction
-    np.testing.assert_array_equal(refused.inliers, result.inliers)
-    assert m2loc_config(3).min_verified == 4 and m2loc_config(3, robust=False).min_verified == 4
-    with pytest.raises(ValueError, match="min_verified"):
-        m2loc_config(3, min_verified=-1)

@@ -1,6 +1,7 @@
 """M2Loc options for small, noisy scans: the one-to-one consistency graph (against a numpy
-reference), cliques that are matchings, and registration retries (never a worse verification, a
-rejected hypothesis replaced by the right one, one compilation)."""
+reference), cliques that are matchings, registration retries and verified clique hypotheses (never
+a worse verification, a rejected pose replaced by the right one, one compilation), and
+``min_verified``."""
 
 from __future__ import annotations
 
@@ -63,16 +64,16 @@ def world():
     return make_outdoor_world("sparse", seed=3, blocks=2, bridge_length=150.0)
 
 
-def config(attempts: int):
+def config(attempts: int = 1, hypotheses: int = 0, min_verified: int = 0):
     return m2loc_config(
         2,
         scale_edges=(20.0, 30.0),
         query_capacity=32,
         one_to_one=True,
         registration_attempts=attempts,
-        hypotheses=0,
+        hypotheses=hypotheses,
         min_inlier_fraction=0.0,
-        min_verified=0,
+        min_verified=min_verified,
     )
 
 
@@ -117,3 +118,60 @@ def test_retries_keep_the_best_verification_and_fix_rejected_hypotheses(maps, qu
             fixed.append(index)
     assert fixed == list(RETRY_FIXED)
     assert dict(pipeline.TRACE_COUNTS) == traces  # one compilation per map, retries included
+
+
+#: Queries of the fixture (found by a search over seed 11's first 60 queries, the retry test's)
+#: whose maximum clique gives a wrong pose, and whose verified hypotheses give the right one. The
+#: search also finds right poses for queries 0, 38 and 53, but these small scans verify fewer than
+#: ``hypothesis_min_support`` (6) vertices beyond the minimal set, so they are not kept.
+HYPOTHESES_FIXED = (14,)
+
+
+def test_hypotheses_keep_the_best_verification_and_fix_rejected_poses(world, queries):
+    maps = {h: build_map(world.points, world.labels, config(hypotheses=h)) for h in (0, 64)}
+    queries = queries[: max(HYPOTHESES_FIXED) + 1]
+    for m in maps.values():
+        localize_scan(m, None, queries[0].points, queries[0].labels)  # compile both
+    traces = dict(pipeline.TRACE_COUNTS)
+    fixed = []
+    for index, q in enumerate(queries):
+        if len(q.points) > 32:  # above the fixture's query capacity
+            continue
+        plain = localize_scan(maps[0], None, q.points, q.labels)
+        searched = localize_scan(maps[64], None, q.points, q.labels)
+        assert searched.inlier_fraction >= plain.inlier_fraction
+        if plain.inlier_fraction >= 0.5:  # verified: the search does not run
+            np.testing.assert_array_equal(searched.pose, plain.pose)
+            np.testing.assert_array_equal(searched.inliers, plain.inliers)
+        assert len(np.unique(searched.inliers[:, 0])) == len(searched.inliers)
+        before, after = (localization_errors(r.pose, q.T_map_scan)[0] for r in (plain, searched))
+        if before > 7.5 and after < 7.5:
+            fixed.append(index)
+    assert fixed == list(HYPOTHESES_FIXED)
+    assert dict(pipeline.TRACE_COUNTS) == traces  # one compilation per map
+
+
+def test_hypotheses_must_not_be_negative():
+    with pytest.raises(ValueError, match="hypotheses"):
+        m2loc_config(3, hypotheses=-1)
+
+
+def test_min_verified_rejects_a_pose_that_few_vertices_confirm(world):
+    """``min_verified`` counts verified vertices beyond the minimal set: a right pose of a
+    query whose count falls short is reported not valid, and the pose itself is unchanged."""
+    rng = np.random.default_rng(11)
+    loose = build_map(world.points, world.labels, config())
+    for _ in range(10):  # the first query of seed 11 that localizes
+        query = make_query(world.points, world.labels, world.road_normals, rng, max_kept=20)
+        result = localize_scan(loose, None, query.points, query.labels)
+        if result.valid and localization_errors(result.pose, query.T_map_scan)[0] < 7.5:
+            break
+    verified = round(result.inlier_fraction * (len(query.points) - 3))
+    assert result.valid and verified >= 3
+    strict = build_map(world.points, world.labels, config(min_verified=verified + 1))
+    refused = localize_scan(strict, None, query.points, query.labels)
+    assert not refused.valid and refused.inlier_fraction == result.inlier_fraction
+    np.testing.assert_array_equal(refused.inliers, result.inliers)
+    assert m2loc_config(3).min_verified == 4 and m2loc_config(3, robust=False).min_verified == 4
+    with pytest.raises(ValueError, match="min_verified"):
+        m2loc_config(3, min_verified=-1)

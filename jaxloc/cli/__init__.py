@@ -162,8 +162,9 @@ def _add_triplet_options(
     group.add_argument(
         "--no-robust",
         action="store_true",
-        help="M2Loc as published: cliques may join associations of one vertex, one registration "
-        "attempt (default: one-to-one cliques, up to 3 attempts)",
+        help="M2Loc as published: cliques may join associations of one vertex, no clique "
+        "hypotheses (default: one-to-one cliques, 256 verified hypotheses when the pose verifies "
+        "poorly)",
     )
 
 

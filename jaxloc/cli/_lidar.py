@@ -151,7 +151,7 @@ def _matching_options(args: argparse.Namespace) -> dict:
     if args.no_rsn:
         options["use_rsn"] = False
     if args.no_robust:
-        options.update(one_to_one=False, registration_attempts=1)
+        options.update(one_to_one=False, registration_attempts=1, hypotheses=0)
     return options
 
 
