@@ -475,6 +475,13 @@ def register_query(
 
     discount = MINIMAL_SET if config.verify_beyond_minimal_set else 0
 
+    def verified_count(fraction):
+        """Scan vertices a verified fraction stands for (beyond the discount), float32."""
+        return fraction * jnp.maximum(jnp.sum(mask) - discount, 1)
+
+    def keep_better(better, new, old):
+        return jax.tree.map(lambda n, o: jnp.where(better, n, o), new, old)
+
     def verify(matrix):
         return verified_fraction(
             matrix,
@@ -528,8 +535,7 @@ def register_query(
         def retry(state):
             count, usable, last_scale, best = state
             result = attempt(usable, last_scale)
-            better = result[5] > best[5]
-            best = jax.tree.map(lambda new, old: jnp.where(better, new, old), result, best)
+            best = keep_better(result[5] > best[5], result, best)
             usable = usable & ~result[0] & disagrees(result[4])
             return count + 1, usable, result[2], best
 
@@ -572,10 +578,8 @@ def register_query(
             # Picking the best of many poses favours chance fits in small scans (6 of 231
             # foreign scans of experiments/m2loc_rejection.py verified >= 0.5 with 2-3 vertices
             # beyond the minimal set): a searched pose must also verify enough vertices.
-            support = result[5] * jnp.maximum(jnp.sum(mask) - discount, 1)
-            enough = support >= config.hypothesis_min_support - 0.5  # counts, in float32
-            better = enough & (result[5] > best[5])
-            return jax.tree.map(lambda new, old: jnp.where(better, new, old), result, best)
+            enough = verified_count(result[5]) >= config.hypothesis_min_support - 0.5
+            return keep_better(enough & (result[5] > best[5]), result, best)
 
         best = (clique, exact, scale, solved, matrix, fraction)
         poor = fraction < config.retry_inlier_fraction
@@ -583,12 +587,11 @@ def register_query(
             poor, search, lambda best: best, best
         )
     clique_size = jnp.sum(clique)
-    support = fraction * jnp.maximum(jnp.sum(mask) - discount, 1)  # verified vertices, float32
     valid = (
         solved
         & (clique_size >= config.min_inliers)
         & (fraction >= config.min_inlier_fraction)
-        & (support >= config.min_verified - 0.5)
+        & (verified_count(fraction) >= config.min_verified - 0.5)  # counts, in float32
     )
     matrix = matrix.at[:3, 3].add(triplet_map.origin)
     matrix = jnp.where(valid, matrix, jnp.eye(4, dtype=matrix.dtype))
