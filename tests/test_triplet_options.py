@@ -5,6 +5,7 @@ a worse verification, a rejected pose replaced by the right one, one compilation
 
 from __future__ import annotations
 
+import equinox as eqx
 import numpy as np
 import pytest
 
@@ -16,6 +17,7 @@ from jaxloc.triplet import (
     localization_errors,
     localize_scan,
     m2loc_config,
+    map_grid,
 )
 
 
@@ -64,7 +66,7 @@ def world():
     return make_outdoor_world("sparse", seed=3, blocks=2, bridge_length=150.0)
 
 
-def config(attempts: int = 1, hypotheses: int = 0, min_verified: int = 0):
+def config(attempts: int = 1, hypotheses: int = 0, min_verified: int = 0, **overrides):
     return m2loc_config(
         2,
         scale_edges=(20.0, 30.0),
@@ -74,6 +76,7 @@ def config(attempts: int = 1, hypotheses: int = 0, min_verified: int = 0):
         hypotheses=hypotheses,
         min_inlier_fraction=0.0,
         min_verified=min_verified,
+        **overrides,
     )
 
 
@@ -139,6 +142,33 @@ def test_hypotheses_keep_the_best_verification_and_fix_rejected_poses(world, que
     maps = {h: build_map(world.points, world.labels, config(hypotheses=h)) for h in (0, 64)}
     queries = queries[: max(HYPOTHESES_FIXED) + 1]
     assert fixed_queries(maps[0], maps[64], queries) == list(HYPOTHESES_FIXED)
+    # The map's verification grid is an optimisation only: without it (or with cells smaller than
+    # the verification radius) the query builds its own and finds the same pose.
+    fine = map_grid(maps[64].points, maps[64].classes, 0.05)  # would find no neighbour
+    q = queries[HYPOTHESES_FIXED[0]]
+    want = localize_scan(maps[64], None, q.points, q.labels)
+    for grid in (None, fine):
+        other = eqx.tree_at(lambda m: m.grid, maps[64], grid, is_leaf=lambda x: x is None)
+        got = localize_scan(other, None, q.points, q.labels)
+        np.testing.assert_array_equal(got.pose, want.pose)
+        np.testing.assert_array_equal(got.inliers, want.inliers)
+
+
+def test_hypothesis_min_fraction_refuses_a_searched_pose_below_it(world, queries):
+    """The fixed query's searched pose is kept at the default and refused by a
+    ``hypothesis_min_fraction`` just above its verification: then the plain pose stays."""
+    q = queries[HYPOTHESES_FIXED[0]]
+    plain = localize_scan(build_map(world.points, world.labels, config()), None, q.points, q.labels)
+    searched = localize_scan(
+        build_map(world.points, world.labels, config(hypotheses=64)), None, q.points, q.labels
+    )
+    assert searched.inlier_fraction > max(plain.inlier_fraction, 0.6)  # kept at the default 0.6
+    strict = config(hypotheses=64, hypothesis_min_fraction=searched.inlier_fraction + 0.01)
+    refused = localize_scan(build_map(world.points, world.labels, strict), None, q.points, q.labels)
+    np.testing.assert_array_equal(refused.pose, plain.pose)
+    assert refused.inlier_fraction == plain.inlier_fraction
+    with pytest.raises(ValueError, match="hypothesis_min_fraction"):
+        m2loc_config(3, hypothesis_min_fraction=1.5)
 
 
 def test_hypotheses_must_not_be_negative():

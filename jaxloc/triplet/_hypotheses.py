@@ -11,8 +11,8 @@ true pose apart: 0.76-0.92 for the true pose of every DCC04 development query th
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -35,15 +35,21 @@ def _clique_hashes(cliques: Array) -> Array:
     return jnp.sum(mixed * jnp.uint32(2246822519), axis=1, dtype=jnp.uint32)
 
 
-class MapGrid(NamedTuple):
-    """Map vertices sorted by a square XY cell of side ``cell`` (for radius queries)."""
+class MapGrid(eqx.Module):
+    """Map vertices sorted by a square XY cell of side ``cell`` metres (for radius queries).
 
-    keys: Array  # (Nm,) int32 sorted cell keys
-    points: Array  # (Nm, 3) float32 vertices in key order
-    classes: Array  # (Nm,) int32
-    low: Array  # (2,) float32 lower XY corner
-    cell: float
-    columns: int
+    Attributes:
+        keys: (Nm,) int32 sorted cell keys; points: (Nm, 3) float32 vertices in key order;
+        classes: (Nm,) int32; low: (2,) float32 lower XY corner; cell: static side (metres);
+        columns: static cells per side.
+    """
+
+    keys: Array
+    points: Array
+    classes: Array
+    low: Array
+    cell: float = eqx.field(static=True)
+    columns: int = eqx.field(static=True)
 
 
 def map_grid(map_points: Array, map_classes: Array, cell: float) -> MapGrid:

@@ -23,6 +23,7 @@ from jaxloc._atomic import write_npz_atomic
 from jaxloc.lsq import RobustLoss
 from jaxloc.scene import MapFormatError, read_map_file
 from jaxloc.triplet._descriptors import DescriptorConfig
+from jaxloc.triplet._hypotheses import map_grid
 from jaxloc.triplet._pipeline import TripletConfig, TripletMap
 
 FORMAT_NAME = "jaxloc.TripletMap"
@@ -149,4 +150,5 @@ def load_triplet_map(path: str | os.PathLike) -> TripletMap:
         raise MapFormatError(f"{path}: bad configuration ({err})") from err
     _check_arrays(path, content, config)
     arrays = {name: jnp.asarray(content[name]) for name in _ARRAYS if name != "has_rsn"}
-    return TripletMap(**arrays, has_rsn=bool(content["has_rsn"]), config=config)
+    grid = map_grid(arrays["points"], arrays["classes"], config.verify_radius)
+    return TripletMap(**arrays, has_rsn=bool(content["has_rsn"]), config=config, grid=grid)
