@@ -162,7 +162,8 @@ def test_hypothesis_min_fraction_refuses_a_searched_pose_below_it(world, queries
     searched = localize_scan(
         build_map(world.points, world.labels, config(hypotheses=64)), None, q.points, q.labels
     )
-    assert searched.inlier_fraction > max(plain.inlier_fraction, 0.6)  # kept at the default 0.6
+    default = pipeline.TripletConfig().hypothesis_min_fraction
+    assert searched.inlier_fraction > max(plain.inlier_fraction, default)  # kept at the default
     strict = config(hypotheses=64, hypothesis_min_fraction=searched.inlier_fraction + 0.01)
     refused = localize_scan(build_map(world.points, world.labels, strict), None, q.points, q.labels)
     np.testing.assert_array_equal(refused.pose, plain.pose)
