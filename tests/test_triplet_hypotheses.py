@@ -145,7 +145,7 @@ def test_best_verified_clique_prefers_the_pose_that_explains_the_scan():
             discount=3,
         )
 
-    found, fraction = jax.jit(best_verified_clique, static_argnums=(4, 5))(
+    found, pose, fraction = jax.jit(best_verified_clique, static_argnums=(4, 5))(
         jnp.asarray(adjacency),
         jnp.asarray(valid),
         jnp.asarray(query_xyz, jnp.float32),
@@ -167,6 +167,9 @@ def test_best_verified_clique_prefers_the_pose_that_explains_the_scan():
     largest = max(len(m) for _, m in scored)
     assert np.flatnonzero(np.asarray(found)).tolist() == list(best_members)
     assert float(fraction) == pytest.approx(best_fraction, abs=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(pose), numpy_kabsch(query_xyz[:4], map_xyz[:4]), atol=1e-4
+    )
     assert list(best_members) == [0, 1, 2, 3] and largest == 6
 
 

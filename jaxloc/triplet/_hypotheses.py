@@ -148,7 +148,7 @@ def best_verified_clique(
     map_xyz: Array,
     verify: Callable[[Array], Array],
     count: int,
-) -> tuple[Array, Array]:
+) -> tuple[Array, Array, Array]:
     """Among the greedy cliques grown from every association, the ``count`` largest distinct ones
     (at least 3 associations) get a closed-form pose each; the one whose pose verifies best wins.
 
@@ -160,7 +160,8 @@ def best_verified_clique(
         count: static number of hypotheses verified.
 
     Returns:
-        ``(clique (A,) bool, fraction)``: the best-verified clique (all False, fraction -1 when no
+        ``(clique (A,) bool, T_map_scan (4, 4), fraction)``: the best-verified clique, its
+        closed-form pose and that pose's verification (all False, the identity and -1 when no
         clique of 3 or more exists).
     """
     n = adjacency.shape[0]
@@ -180,4 +181,6 @@ def best_verified_clique(
     poses = closed_form_poses(masks, query_xyz, map_xyz)
     fractions = jnp.where(top_score >= 3, jax.vmap(verify)(poses), -1.0)
     best = jnp.argmax(fractions)
-    return masks[best] & (fractions[best] >= 0), fractions[best]
+    found = fractions[best] >= 0
+    pose = jnp.where(found, poses[best], jnp.eye(4, dtype=poses.dtype))
+    return masks[best] & found, pose, fractions[best]
