@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import networkx as nx
 import numpy as np
 from _atomic import write_text_atomic
+from m2loc_rejection import verified_beyond_minimal_set
 
 from jaxloc.datasets.outdoor import make_outdoor_world, make_query
 from jaxloc.triplet import (
@@ -207,7 +208,7 @@ PLACE_CHECKS = ((0.5, 4), (0.5, 5), (0.6, 4), (0.6, 5))
 def passes(row: dict, fraction: float, verified: int) -> bool:
     """Whether a query's pose passes the place check (``m2loc_config`` counts the vertices beyond
     the pose's minimal set of 3)."""
-    count = round(row["inlier_fraction"] * max(row["vertices"] - 3, 1))
+    count = verified_beyond_minimal_set(row["inlier_fraction"], row["vertices"])
     return row["inlier_fraction"] >= fraction and count >= verified
 
 

@@ -64,14 +64,15 @@ def run(triplet_map, world, rng, count, max_kept):
     return np.array(rows, dtype=float).reshape(-1, 6)
 
 
-def verified_beyond_minimal_set(rows):
-    """Scan vertices verified beyond the 3 that fix the pose (``m2loc_config``'s count)."""
-    return np.round(rows[:, 1] * np.maximum(rows[:, 5] - 3, 1))
+def verified_beyond_minimal_set(fraction, vertices):
+    """Scan vertices verified beyond the 3 that fix the pose (``m2loc_config``'s count), from the
+    verified fraction and the scan's vertex count (scalars or arrays)."""
+    return np.round(fraction * np.maximum(vertices - 3, 1))
 
 
 def accepted_at_defaults(rows, min_verified):
     """Valid at min_inliers 3 and fraction 0.5 with ``min_verified`` verified vertices."""
-    verified = verified_beyond_minimal_set(rows) >= min_verified
+    verified = verified_beyond_minimal_set(rows[:, 1], rows[:, 5]) >= min_verified
     return (rows[:, 2] > 0) & (rows[:, 0] >= 3) & (rows[:, 1] >= 0.5) & verified
 
 

@@ -15,25 +15,14 @@ pose verifies at least 0.5 here).
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import equinox as eqx
 import numpy as np
 from _atomic import write_text_atomic
+from m2loc_losses import OUT, load_maps
 
 from jaxloc.datasets.outdoor import make_outdoor_world, make_query
-from jaxloc.triplet import (
-    build_map,
-    load_instance_map,
-    load_road_normals,
-    localization_errors,
-    localize_scan,
-    m2loc_config,
-)
+from jaxloc.triplet import build_map, localization_errors, localize_scan, m2loc_config
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT.parent / "shared" / "data" / "helipr_instance_maps"
-OUT = ROOT / "experiments" / "results" / "m2loc" / "searched_poses.md"
 SEEDS = (2000, 3000)
 BANDS = (0.5, 0.55, 0.6, 0.7, 1.01)
 
@@ -58,14 +47,13 @@ def searched_fraction(searching, plain, query):
 
 
 def true_queries() -> list[tuple[float, bool]]:
-    instance_map = load_instance_map(DATA / "DCC04")
-    normals = load_road_normals(DATA / "DCC04")
-    searching, plain = maps(instance_map.points, instance_map.labels, normals)
+    _, points, labels, normals = next(load_maps(["DCC04"]))
+    searching, plain = maps(points, labels, normals)
     found = []
     for seed in SEEDS:
         rng = np.random.default_rng(seed)
         for _ in range(200):
-            q = make_query(instance_map.points, instance_map.labels, normals, rng, max_kept=25)
+            q = make_query(points, labels, normals, rng, max_kept=25)
             if 3 <= len(q.points) <= 64 and (hit := searched_fraction(searching, plain, q)):
                 rte, rre = localization_errors(hit[1], q.T_map_scan)
                 found.append((hit[0], bool(rte < 7.5 and rre < 10.0)))
@@ -112,7 +100,7 @@ def main() -> None:
         chance = sum(low <= f < high for f in foreign)
         band = f"[{low:.2f}, 1.00]" if high > 1.0 else f"[{low:.2f}, {high:.2f})"
         lines.append(f"| {band} | {right} | {wrong} | {chance} |")
-    write_text_atomic(OUT, "\n".join(lines) + "\n")
+    write_text_atomic(OUT / "searched_poses.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
