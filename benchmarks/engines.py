@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from raycast import build_room, random_poses, timed, world_rays  # noqa: E402
 
 import jaxloc  # noqa: E402
-from jaxloc import _engines  # noqa: E402
+from jaxloc.raycasting import embree, engines
 
 
 def peak_rss_mib() -> float:
@@ -105,7 +105,7 @@ def main(argv=None) -> None:
     engines = (
         args.engines.split(",")
         if args.engines
-        else ["auto", "jax"] + [e for e in ("embree", "warp") if _engines.is_installed(e)]
+        else ["auto", "jax"] + [e for e in ("embree", "warp") if engines.is_installed(e)]
     )
     t0 = time.perf_counter()
     room, scene = build_room(args.seed)
@@ -130,8 +130,8 @@ def main(argv=None) -> None:
     print(
         f"- jax {jax.__version__} on {device.platform} ({device.device_kind}); "
         f"{os.cpu_count()} CPUs visible, {platform.processor() or platform.machine()}; "
-        f"auto = {_engines.resolve_engine('auto')}; Embree threads "
-        f"{_engines._thread_pool()._max_workers}"
+        f"auto = {engines.resolve_engine('auto')}; Embree threads "
+        f"{embree._thread_pool()._max_workers}"
     )
     print(f"- load average {load_start:.1f} at the start")
     print(

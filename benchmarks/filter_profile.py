@@ -35,19 +35,14 @@ from filter_step import FULL_PARTICLES, initial_state, load_data, make_data  # n
 from raycast import render_order_rays  # noqa: E402
 
 from jaxloc import raycast, render_batch  # noqa: E402
-from jaxloc._engines import resolve_engine  # noqa: E402
-from jaxloc._raycast import hit_triangles  # noqa: E402
-from jaxloc._render import PACKET_SIZE  # noqa: E402
 from jaxloc.camera import stride_grid  # noqa: E402
-from jaxloc.filter import Region, StepConfig, frames_on_grid, step  # noqa: E402
-from jaxloc.particles import (
-    inject_uniform,
-    mle,
-    update_weights,
-    weighted_mean,
-)
-from jaxloc.resample import KLDConfig, kld_resample  # noqa: E402
-from jaxloc.scores import ObservationConfig, match_patches, particle_log_likelihood  # noqa: E402
+from jaxloc.raycasting import hit_triangles
+from jaxloc.raycasting.engines import resolve_engine
+from jaxloc.sg2loc.filter import Region, StepConfig, frames_on_grid, step
+from jaxloc.sg2loc.particles import inject_uniform, mle, update_weights, weighted_mean
+from jaxloc.sg2loc.rendering import PACKET_SIZE
+from jaxloc.sg2loc.resampling import KLDConfig, kld_resample
+from jaxloc.sg2loc.scores import ObservationConfig, match_patches, particle_log_likelihood
 
 
 def best_of(fn, repeats):

@@ -1,7 +1,8 @@
-"""Seconds per frame and peak memory of one jitted SG2Loc filter step (:func:`jaxloc.filter.step`).
+"""Seconds per frame and peak memory of one jitted SG2Loc filter step
+(:func:`jaxloc.sg2loc.filter.step`).
 
 The issue's benchmark: 2500 particles on 960x540 images of a synthetic room
-(:mod:`jaxloc.datasets.indoor`, default room and sensor settings), for
+(:mod:`jaxloc.synthetic.indoor`, default room and sensor settings), for
 
 * ``stride 20``: one pass = one step of round 0 (48 x 27 = 1296 rays per particle);
 * ``all rounds``: one step at each of the default :class:`~jaxloc.sg2loc.SG2LocConfig` strides
@@ -17,9 +18,9 @@ through the frames, blocking on every result. Times are wall clock AND process C
 ``jax.devices()[0].memory_stats()['peak_bytes_in_use']``. Round 0 starts from the paper's floor
 initialisation; later rounds from the paper's boxes around the true first pose (half-widths 0.8
 and 0.4 m). Only the active particles are rendered, in chunks of ``--chunk`` particles (default:
-``jaxloc.filter.CHUNK_RAYS`` rays per chunk; ``--chunk 0`` renders every slot in one call, the
-behaviour before chunking), with the nearest-hit engine ``--engine``. With ``--particles`` or the
-image size reduced, the table adds a column scaled linearly to the full size, labelled as an
+``jaxloc.sg2loc.filter.CHUNK_RAYS`` rays per chunk; ``--chunk 0`` renders every slot in one call,
+the behaviour before chunking), with the nearest-hit engine ``--engine``. With ``--particles`` or
+the image size reduced, the table adds a column scaled linearly to the full size, labelled as an
 estimate.
 
     python benchmarks/filter_step.py                                   # the full benchmark
@@ -88,8 +89,8 @@ def make_data(args: argparse.Namespace, folder: Path) -> dict:
     """Build the episode once (host side), save the map and the sequence for the children."""
     import numpy as np
 
-    from jaxloc.datasets.indoor import EpisodeConfig, SensorConfig, make_episode
-    from jaxloc.scene import save_scene
+    from jaxloc.io.scene_map import save_scene
+    from jaxloc.synthetic.indoor import EpisodeConfig, SensorConfig, make_episode
 
     start = time.perf_counter()
     config = EpisodeConfig(sensor=SensorConfig(width=args.width, height=args.height))
@@ -118,7 +119,7 @@ def load_data(folder: Path, width: int, height: int):
     import numpy as np
 
     from jaxloc import Camera, Sequence
-    from jaxloc.scene import load_scene
+    from jaxloc.io.scene_map import load_scene
 
     with np.load(folder / "sequence.npz") as data:
         arrays = {key: data[key] for key in data.files}
@@ -160,7 +161,7 @@ def initial_state(key, particles: int, round_index: int, region, first_pose):
     pose (half-widths :data:`BOX_HALF_WIDTHS`)."""
     import jax.numpy as jnp
 
-    from jaxloc.particles import init_box, init_region
+    from jaxloc.sg2loc.particles import init_box, init_region
 
     if round_index == 0:
         return init_region(key, particles, region.lo, region.hi, region.floor_z)
@@ -174,9 +175,9 @@ def run_case(args: argparse.Namespace) -> dict:
     import jax.numpy as jnp
 
     from jaxloc.camera import patch_grid, stride_grid
-    from jaxloc.filter import Region, StepConfig, frames_on_grid, step
-    from jaxloc.resample import KLDConfig
-    from jaxloc.scores import ObservationConfig
+    from jaxloc.sg2loc.filter import Region, StepConfig, frames_on_grid, step
+    from jaxloc.sg2loc.resampling import KLDConfig
+    from jaxloc.sg2loc.scores import ObservationConfig
 
     scene, seq, poses_gt = load_data(Path(args.data), args.width, args.height)
     rows, cols = seq.patch_shape

@@ -23,20 +23,17 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxloc.datasets.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
-from jaxloc.datasets.outdoor import make_outdoor_world
-from jaxloc.triplet import (
-    MapBuildConfig,
-    RoadNormals,
-    build_lidar_maps,
-    build_map,
+from jaxloc.io import (
     load_instance_map,
     load_lidar_sequence,
     load_road_normals,
     load_triplet_map,
-    m2loc_config,
     save_triplet_map,
 )
+from jaxloc.m2loc import RoadNormals, build_map, m2loc_config
+from jaxloc.mapping import MapBuildConfig, build_lidar_maps
+from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
+from jaxloc.synthetic.outdoor import make_outdoor_world
 
 MAPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "helipr_instance_maps"
 

@@ -3,7 +3,7 @@
 
 Scene: a synthetic room of 40 objects (floor, ceiling, 4 walls, 34 pieces of furniture) of about
 860 vertices each, ~65k triangles, like SG2Loc's coarse 3RScan meshes; built deterministically with
-:mod:`jaxloc.datasets.indoor`. Poses: random (x, y, z, yaw) inside the room. Ray sets:
+:mod:`jaxloc.synthetic.indoor`. Poses: random (x, y, z, yaw) inside the room. Ray sets:
 
 * ``patch``: 16 x 9 patch grid, one ray per patch centre (:func:`jaxloc.patch_grid`), 144 rays/pose;
 * ``stride``: every 20th pixel of 960 x 540 (:func:`jaxloc.stride_grid`), 48 x 27 = 1296 rays/pose.
@@ -17,10 +17,12 @@ adjudicated with a float64 brute force over all triangles.
     python benchmarks/raycast.py --poses 100     # a quick run
     python benchmarks/raycast.py --baseline OLD_RAYCAST.py   # + an older traversal, same rays
 
-``--baseline`` loads another version of ``jaxloc/_raycast.py`` from a file (e.g. the previous
-commit's, ``git show HEAD~1:jaxloc/_raycast.py > /tmp/old_raycast.py``) and times its ``raycast``
-on the rays ``render_batch`` casts (tile order, packets of :data:`jaxloc._render.PACKET_SIZE`), so
-the two traversals are compared side by side in one run.
+``--baseline`` loads a module with a ``raycast(scene, origins, directions, packet_size=...)`` from
+a file (e.g. an older ``jaxloc/raycasting/hits.py`` with its traversal pasted in) and times its
+``raycast``; the file's imports resolve against the installed jaxloc, so it may import only what
+exists there. Both cast the rays ``render_batch`` casts (tile order, packets of
+:data:`jaxloc.sg2loc.rendering.PACKET_SIZE`), so the two traversals are compared side by side in
+one run.
 """
 
 from __future__ import annotations
@@ -38,10 +40,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxloc
-from jaxloc import _raycast
-from jaxloc._render import PACKET_SIZE, _tile_order
-from jaxloc.datasets.indoor import RoomConfig, make_room, scene_graph
+from jaxloc import raycasting
 from jaxloc.geometry import rotation_world_cam
+from jaxloc.sg2loc.rendering import PACKET_SIZE, _tile_order
+from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
 
 
 def build_room(seed: int = 0):
@@ -161,7 +163,7 @@ def run_grid(name, scene, mesh_intersector, tri_object, poses, camera, grid, arg
     if args.baseline:
         baseline = load_module(args.baseline)
         for key, module, packet in (
-            ("new", _raycast, PACKET_SIZE),
+            ("new", raycasting, PACKET_SIZE),
             ("base", baseline, args.baseline_packet),
         ):
             o_tiles, d_tiles = render_order_rays(poses, camera, grid, packet)
@@ -230,7 +232,7 @@ def main(argv=None):
     parser.add_argument("--packet", type=int, default=1, help="packet_size of the raycast row")
     parser.add_argument("--no-embree", dest="embree", action="store_false")
     parser.add_argument(
-        "--baseline", default=None, help="file of an older jaxloc/_raycast.py to time beside"
+        "--baseline", default=None, help="file of a module with an older raycast() to time beside"
     )
     parser.add_argument(
         "--baseline-packet", type=int, default=16, help="its packet size (16 before 4-wide)"

@@ -24,13 +24,11 @@ import jax.numpy as jnp
 import networkx as nx
 import numpy as np
 
-from jaxloc.datasets.outdoor import make_query
-from jaxloc.triplet import (
+from jaxloc.io import load_instance_map, load_road_normals
+from jaxloc.m2loc import (
     build_map,
     consistency_graph,
     describe_query,
-    load_instance_map,
-    load_road_normals,
     localize_scan,
     m2loc_config,
     match_descriptors,
@@ -40,7 +38,8 @@ from jaxloc.triplet import (
     register_query,
     tripletloc_config,
 )
-from jaxloc.triplet._clique import max_clique_symmetric
+from jaxloc.m2loc._clique import max_clique_symmetric
+from jaxloc.synthetic.outdoor import make_query
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "helipr_instance_maps"
 CONFIGS = {

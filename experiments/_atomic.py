@@ -1,5 +1,5 @@
 """Atomic text writes for the experiment scripts (the library's own helper)."""
 
-from jaxloc._atomic import write_text_atomic
+from jaxloc.io._atomic import write_text_atomic
 
 __all__ = ["write_text_atomic"]

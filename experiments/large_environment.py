@@ -1,13 +1,13 @@
 """SG2Loc's large-environment experiment (appendix D, Table 11) at a reduced CPU scale.
 
 Each environment merges ``--rooms`` synthetic rooms side by side into one scene graph
-(:func:`jaxloc.datasets._indoor_merge.merge_rooms`); a query sequence from every room is
+(:func:`jaxloc.synthetic.indoor.merge.merge_rooms`); a query sequence from every room is
 localized with :func:`jaxloc.sg2loc.localize` twice at the same settings: with particles spread
 over the whole merged floor (the large environment) and over its own room only (the usual
 single-room case). Reported per setting: the fraction of sequences whose final MLE lies in the
 correct room (SG2Loc's R^t@1 in Table 11), the final-frame pose errors and recalls, and for
-comparison the sequential SceneGraphLoc retrieval (:mod:`jaxloc.retrieval`) of the correct room
-among the environment's rooms.
+comparison the sequential SceneGraphLoc retrieval (:mod:`jaxloc.sg2loc.retrieval`) of the correct
+room among the environment's rooms.
 
 Reduced scale (CPU, shared cores): 160x90 images, rooms with coarse 100-150-vertex meshes,
 particle capacity 2000, two rounds at strides (8, 6) instead of the paper's 960x540, 863-vertex
@@ -33,14 +33,14 @@ import jax
 import numpy as np
 from _atomic import write_text_atomic
 
-from jaxloc.datasets import indoor
-from jaxloc.datasets._indoor_merge import merge_rooms
-from jaxloc.filter import Region
 from jaxloc.metrics import summarize, yaw_pose_errors
-from jaxloc.resample import KLDConfig
-from jaxloc.retrieval import Gallery, retrieve
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc import SG2LocConfig, localize
+from jaxloc.sg2loc.filter import Region
+from jaxloc.sg2loc.resampling import KLDConfig
+from jaxloc.sg2loc.retrieval import Gallery, retrieve
+from jaxloc.synthetic import indoor
+from jaxloc.synthetic.indoor.merge import merge_rooms
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "experiments" / "results" / "large_environment"

@@ -1,19 +1,19 @@
 """Learned vs hand-set SG2Loc likelihood parameters (sigma, lambda_depth, lambda_color), issue 5.
 
-1. Training windows (:func:`jaxloc.learn.sequence_windows`) from synthetic training episodes
+1. Training windows (:func:`jaxloc.sg2loc.learn.sequence_windows`) from synthetic training episodes
    (seeds 2000, 2001, ...), scored on both ray grids the filter uses (the coarse and the fine
-   stride); Adam on the window loss (:mod:`jaxloc.learn`, default ``"nll"``; ``"expected_error"``
-   is trained too, for comparison of the learned values only).
+   stride); Adam on the window loss (:mod:`jaxloc.sg2loc.learn`, default ``"nll"``;
+   ``"expected_error"`` is trained too, for comparison of the learned values only).
 2. Held-out episodes (seeds 3000, 3001, ...; never used for training or in tests): windows for
    the learning curve's held-out loss, and the full coarse-to-fine filter
    (:func:`jaxloc.sg2loc.localize`) with the hand-set defaults (sigma 0.6, lambdas 2, 2) and
    with the learned ("nll") parameters, the same PRNG key for both.
 
 Variants: ``--windows filter`` trains on the filter's own particle sets instead
-(:func:`jaxloc.learn.filter_windows`, ``--iterations`` alternations of filter runs on the training
-episodes and fits); ``--loss-frames every`` scores every prefix of a window (``LossConfig.frames``);
-``--kernel-m/--kernel-deg/--box-m/--box-deg`` set the loss kernel and the local particles' box.
-The tables add a per-scene paired comparison and a bootstrap over scenes.
+(:func:`jaxloc.sg2loc.learn.filter_windows`, ``--iterations`` alternations of filter runs on the
+training episodes and fits); ``--loss-frames every`` scores every prefix of a window
+(``LossConfig.frames``); ``--kernel-m/--kernel-deg/--box-m/--box-deg`` set the loss kernel and the
+local particles' box. The tables add a per-scene paired comparison and a bootstrap over scenes.
 
 Reduced, CPU-feasible scale (the machine is 2 shared cores): small coarse rooms (4-6 x 4-5 m,
 15-20 objects of 100-200 vertices), 160x90 images with the 9x16 patch grid, strides (10, 5)
@@ -39,18 +39,12 @@ import jax  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxloc import learn  # noqa: E402
 from jaxloc.camera import stride_grid  # noqa: E402
-from jaxloc.datasets.indoor import (  # noqa: E402
-    EpisodeConfig,
-    RoomConfig,
-    SensorConfig,
-    make_episode,
-)
 from jaxloc.metrics import SG2LOC_RECALL_THRESHOLDS, summarize, yaw_pose_errors  # noqa: E402
 from jaxloc.scene import SceneGraph  # noqa: E402
-from jaxloc.scores import ObservationConfig  # noqa: E402
-from jaxloc.sg2loc import SG2LocConfig, localize  # noqa: E402
+from jaxloc.sg2loc import SG2LocConfig, learn, localize  # noqa: E402
+from jaxloc.sg2loc.scores import ObservationConfig
+from jaxloc.synthetic.indoor import EpisodeConfig, RoomConfig, SensorConfig, make_episode
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "experiments" / "results" / "learn"
@@ -239,8 +233,8 @@ def main() -> None:
         choices=("box", "filter"),
         default="box",
         help="training windows: particles drawn around the truth and over the room ('box', "
-        "jaxloc.learn.sequence_windows) or the filter's own particle sets ('filter', "
-        "jaxloc.learn.filter_windows, alternating filter runs and fits)",
+        "jaxloc.sg2loc.learn.sequence_windows) or the filter's own particle sets ('filter', "
+        "jaxloc.sg2loc.learn.filter_windows, alternating filter runs and fits)",
     )
     parser.add_argument(
         "--iterations", type=int, default=2, help="filter runs / fits with --windows filter"

@@ -34,15 +34,15 @@ import numpy as np
 from _atomic import write_text_atomic
 from m2loc_rejection import verified_beyond_minimal_set
 
-from jaxloc.datasets.outdoor import make_outdoor_world, make_query
-from jaxloc.triplet import (
+from jaxloc.io import load_instance_map, load_road_normals
+from jaxloc.m2loc import (
     build_map,
-    load_instance_map,
-    load_road_normals,
+    describe_query,
     localization_errors,
     m2loc_config,
+    register_query,
 )
-from jaxloc.triplet._pipeline import describe_query, register_query
+from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "helipr_instance_maps"

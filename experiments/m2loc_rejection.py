@@ -20,14 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxloc.datasets.outdoor import make_outdoor_world, make_query
-from jaxloc.triplet import (
+from jaxloc.m2loc import (
     build_map,
     localization_errors,
     localize_scan,
     m2loc_config,
     tripletloc_config,
 )
+from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 OUT = Path(__file__).resolve().parents[1] / "experiments" / "results" / "m2loc"
 #: Configurations, thresholds applied offline (min_inlier_fraction 0 while running); the

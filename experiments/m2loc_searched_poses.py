@@ -20,8 +20,8 @@ import numpy as np
 from _atomic import write_text_atomic
 from m2loc_losses import OUT, load_maps
 
-from jaxloc.datasets.outdoor import make_outdoor_world, make_query
-from jaxloc.triplet import build_map, localization_errors, localize_scan, m2loc_config
+from jaxloc.m2loc import build_map, localization_errors, localize_scan, m2loc_config
+from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 SEEDS = (2000, 3000)
 BANDS = (0.5, 0.55, 0.6, 0.7, 1.01)

@@ -3,7 +3,7 @@
 Rows: TripletLoc (one scale, angle + edge-length histograms), Multi-2-En and Multi-3-En (scales
 [0, 20], (20, 30], (30, 40] m, angle + length-ratio histograms, dynamic clique enhancement T = 10).
 Columns: the four real instance maps in ``../shared/data/helipr_instance_maps`` and a synthetic
-sparse and dense world. Queries are cut from each map (``jaxloc.datasets.outdoor.make_query``:
+sparse and dense world. Queries are cut from each map (``jaxloc.synthetic.outdoor.make_query``:
 a pose on the road, vertices within 40-60 m, 50-80 % dropped, 0.2-0.5 m jitter, 10-30 % spurious,
 random SE(3)), seeded, the same queries for all rows.
 
@@ -23,17 +23,16 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxloc.datasets.outdoor import make_outdoor_world, make_query  # noqa: E402
-from jaxloc.triplet import (  # noqa: E402
+from jaxloc.io import load_instance_map, load_road_normals
+from jaxloc.m2loc import (
     build_map,
-    load_instance_map,
-    load_road_normals,
     localization_errors,
     localize_scan,
     m2loc_config,
     summarize_localization,
     tripletloc_config,
 )
+from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "helipr_instance_maps"

@@ -1,4 +1,5 @@
-"""SG2Loc filter MLE vs + visual pose refinement (jaxloc.refine) on synthetic indoor episodes.
+"""SG2Loc filter MLE vs + visual pose refinement (jaxloc.sg2loc.refine) on synthetic indoor
+episodes.
 
 Two parts, both on seeds >= 1000 (not used by the tests), written to experiments/results/refine/:
 
@@ -38,11 +39,11 @@ import jaxlie
 import numpy as np
 
 from jaxloc import Capacity, SceneGraph, raycast, render, stride_grid
-from jaxloc.datasets.indoor import EpisodeConfig, SensorConfig, make_episode
 from jaxloc.geometry import yaw_pose_to_se3
 from jaxloc.metrics import rotation_error_deg, summarize, yaw_pose_errors
-from jaxloc.refine import RefineConfig, refine, refine_frame
 from jaxloc.sg2loc import SG2LocConfig, localize
+from jaxloc.sg2loc.refine import RefineConfig, refine, refine_frame
+from jaxloc.synthetic.indoor import EpisodeConfig, SensorConfig, make_episode
 
 OUT = Path(__file__).parent / "results" / "refine"
 THRESHOLDS = ((0.25, 2.0), (0.10, 5.0))
@@ -373,7 +374,7 @@ def write_convergence(rows, command, args) -> None:
             )
         )
     text = (
-        f"# Noise-free convergence of jaxloc.refine\n\n`{command}`\n\n"
+        f"# Noise-free convergence of jaxloc.sg2loc.refine\n\n`{command}`\n\n"
         f"Start: truth perturbed by {args.perturb_m} m (random direction) and {args.perturb_deg} "
         "deg (random axis); noise-free depth rendered from the map; exact correspondences "
         f"({args.matches}, no outliers). Success: < 0.02 m and < 0.5 deg. "

@@ -1,14 +1,14 @@
 """The shape of SG2Loc's Table 5: sequential scene retrieval on synthetic indoor scenes.
 
-A pool of synthetic rooms (``jaxloc.datasets.indoor``; every room shares the class vectors of
+A pool of synthetic rooms (``jaxloc.synthetic.indoor``; every room shares the class vectors of
 ``RoomConfig.class_seed = 0``, so objects of one class look alike across rooms): ``--queries``
 rooms with a ``--frames``-frame query episode from :func:`make_episode` (their patch embeddings
 carry the dataset's confusions and noise) and ``--distractors`` rooms from :func:`make_room`.
 Each query episode is cut into non-overlapping windows of 1, 5, 10, 25 and 50 frames; each
 window is retrieved among 10 and among 50 candidates (its own room plus 9 / 49 other pool rooms
-drawn at random, ``--draws`` draws per window) with :func:`jaxloc.retrieval.retrieve`'s scores;
-R@1/3/5 average over windows and draws. A window's score is the sum of its frames' scores, so
-every frame is scored once against the whole pool (checked against a direct ``retrieve`` call).
+drawn at random, ``--draws`` draws per window) with :func:`jaxloc.sg2loc.retrieval.retrieve`'s
+scores; R@1/3/5 average over windows and draws. A window's score is the sum of its frames' scores,
+so every frame is scored once against the whole pool (checked against a direct ``retrieve`` call).
 
 Difficulty: with the dataset's own patch embeddings every patch is a noisy copy of an object
 of the true room, and retrieval saturates (R@1 = 1 from one frame). Exploratory runs (ad hoc,
@@ -19,7 +19,7 @@ are NOT in the room: the two harder rows replace 50 % / 70 % of the patches by e
 new objects of random classes (:func:`query_patches`). These rates were chosen after one sweep
 that saw only 1- and 10-frame R@1 at 80 % and 90 % (both ~0); all three rows are reported.
 
-Time per query: median wall time of :func:`jaxloc.retrieval.retrieve` after compilation (the
+Time per query: median wall time of :func:`jaxloc.sg2loc.retrieval.retrieve` after compilation (the
 public call, validation included) on the 2 shared CPU cores; storage: the float32 object
 embeddings a scene contributes to the database (:meth:`Gallery.storage_mb`).
 
@@ -42,8 +42,8 @@ import jax
 import numpy as np
 from _atomic import write_text_atomic
 
-from jaxloc.datasets import indoor
-from jaxloc.retrieval import Gallery, recall_at_k, retrieve, true_rank
+from jaxloc.sg2loc.retrieval import Gallery, recall_at_k, retrieve, true_rank
+from jaxloc.synthetic import indoor
 
 LENGTHS = (1, 5, 10, 25, 50)
 CANDIDATES = (10, 50)

@@ -1,6 +1,6 @@
 """The shape of SG2Loc's Tables 1, 2 and 7 and Fig. 3 on synthetic indoor scenes (seeds >= 1000).
 
-Each scene is ``jaxloc.datasets.indoor.make_episode(seed, T, config)`` with the dataset's realistic
+Each scene is ``jaxloc.synthetic.indoor.make_episode(seed, T, config)`` with the dataset's realistic
 defaults (20 % patch confusions, cosine 0.7-0.9, 2 % depth noise, 10 % holes, 2 cm / 1 degree
 ego-motion drift per frame, 10 % of objects changed), at the paper's scale by default: 960x540
 frames, strides 20 / 8 / 4, 2500 particles (``--width --height --strides --capacity`` reduce it;
@@ -43,14 +43,14 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxloc.datasets.indoor import EpisodeConfig, SensorConfig, make_episode
 from jaxloc.geometry import wrap_angle
 from jaxloc.metrics import SG2LOC_RECALL_THRESHOLDS, summarize, yaw_pose_errors
-from jaxloc.resample import KLDConfig
 from jaxloc.scene import Capacity, SceneGraph
-from jaxloc.scores import ObservationConfig
-from jaxloc.sequence import Sequence
 from jaxloc.sg2loc import SG2LocConfig, carry_back, localize
+from jaxloc.sg2loc.resampling import KLDConfig
+from jaxloc.sg2loc.scores import ObservationConfig
+from jaxloc.sg2loc.sequence import Sequence
+from jaxloc.synthetic.indoor import EpisodeConfig, SensorConfig, make_episode
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "experiments" / "results" / "sg2loc"
@@ -240,7 +240,7 @@ def run_phase(args: argparse.Namespace, phase: str) -> None:
             )
             if args.figure and seed == args.seed0 and variant == "full" and num_frames == 5:
                 # Fig. 3: particles per round and frame, MLE vs ground truth (5 frames)
-                from jaxloc.viz import plot_rounds
+                from jaxloc.sg2loc.figures import plot_rounds
 
                 bounds = np.asarray(scene.bounds)
                 plot_rounds(result, episode.poses_gt[:5], out / "fig3_rounds.png", bounds)

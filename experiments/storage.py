@@ -3,9 +3,9 @@
 For synthetic rooms (seeds not used in tests) this reports, per scene, the map content
 (:meth:`jaxloc.SceneGraph.storage_mb`: meshes, labels, embeddings, colours, edges), the size of the
 saved ``.npz`` file on disk (:func:`jaxloc.save_scene`, compressed), the embeddings alone (what
-retrieval needs, :meth:`jaxloc.retrieval.Gallery.storage_mb`), and the padded arrays a compiled
-filter holds in memory (BVH included). Pure host work, no rendering (about 90 CPU-seconds for
-20 rooms).
+retrieval needs, :meth:`jaxloc.sg2loc.retrieval.Gallery.storage_mb`), and the padded arrays a
+compiled filter holds in memory (BVH included). Pure host work, no rendering (about 90 CPU-seconds
+for 20 rooms).
 
     python experiments/storage.py --rooms 20
 """
@@ -20,8 +20,8 @@ import jax
 import numpy as np
 
 import jaxloc
-from jaxloc.datasets import indoor
-from jaxloc.retrieval import Gallery
+from jaxloc.sg2loc.retrieval import Gallery
+from jaxloc.synthetic import indoor
 
 OUT = Path(__file__).parent / "results" / "storage"
 

@@ -175,7 +175,8 @@ def solve_pose(
         loss: the robust loss (default: plain least squares).
         prior_fn: optional ``prior_fn(T, args) -> (P,)`` prior residuals, never robustified.
         max_steps: optimiser step budget per solve (static).
-        rtol, atol: optimistix convergence tolerances (static).
+        rtol: optimistix relative convergence tolerance (static).
+        atol: optimistix absolute convergence tolerance (static).
         method: "lm" (Levenberg-Marquardt) or "gn" (Gauss-Newton).
 
     Returns:

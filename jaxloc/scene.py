@@ -3,15 +3,13 @@
 A :class:`SceneGraph` is an ``eqx.Module`` pytree of fixed-shape arrays. Its shapes are its
 :class:`Capacity`; two maps of the same capacity are interchangeable inside one compiled function
 (no recompilation). Build one with :meth:`SceneGraph.from_meshes`, pad it to a shared capacity with
-``capacity=``, save/load it with :func:`save_scene` / :func:`load_scene`.
+``capacity=``, save/load it with :func:`jaxloc.save_scene` / :func:`jaxloc.load_scene`
+(:mod:`jaxloc.io.scene_map`).
 """
 
 from __future__ import annotations
 
-import os
-import zipfile
 from collections.abc import Sequence
-from pathlib import Path
 from typing import NamedTuple
 
 import equinox as eqx
@@ -20,21 +18,14 @@ import numpy as np
 import trimesh
 from jax import Array
 
-from jaxloc._atomic import write_npz_atomic
-from jaxloc.bvh import build_bvh
+from jaxloc.raycasting.bvh import build_bvh
 
-FORMAT_NAME = "jaxloc.SceneGraph"
-FORMAT_VERSION = 1
 #: Triangles with an area below this (m^2) are dropped at build time (they can never be hit).
 MIN_TRIANGLE_AREA = 1e-12
 DEFAULT_LEAF_SIZE = 4
 #: SAH splits up to this depth, median splits below it: bounds the tree depth.
 MEDIAN_DEPTH = 32
 DEFAULT_STACK_SIZE = 64
-
-
-class MapFormatError(ValueError):
-    """A map file that is not a valid jaxloc scene graph (corrupt, truncated, wrong version)."""
 
 
 class Capacity(NamedTuple):
@@ -79,7 +70,7 @@ class SceneGraph(eqx.Module):
         triangles: (T, 3, 3) float32 vertex positions.
         triangle_object: (T,) int32 owning object, -1 for padding.
         triangle_colors: (T, 3, 3) float32 RGB in [0, 1] at each corner.
-    BVH arrays (see :mod:`jaxloc.bvh`): node_bounds (N + L, 6), node_children (N, 2),
+    BVH arrays (see :mod:`jaxloc.raycasting.bvh`): node_bounds (N + L, 6), node_children (N, 2),
         leaf_triangles (L, 9, K), leaf_triangle_ids (L, K), root (), bounds (2, 3) the scene AABB.
     stack_size: static traversal stack size (>= tree depth).
     """
@@ -161,6 +152,40 @@ class SceneGraph(eqx.Module):
         """
         arrays = _objects_to_arrays(meshes, labels, embeddings, colors, edges)
         return _build(*arrays, capacity=capacity)
+
+    @staticmethod
+    def from_arrays(
+        labels: np.ndarray,
+        embeddings: np.ndarray,
+        object_colors: np.ndarray,
+        edges: np.ndarray,
+        triangles: np.ndarray,
+        triangle_object: np.ndarray,
+        triangle_colors: np.ndarray,
+        capacity: Capacity | None = None,
+    ) -> SceneGraph:
+        """Build a scene graph from validated, unpadded host arrays (what a map file holds).
+
+        Args:
+            labels: (n,) int32 classes; embeddings: (n, d) float32 unit-norm; object_colors:
+                (n, 3) float32 RGB in [0, 1]; edges: (m, 2) int32 object pairs; triangles:
+                (t, 3, 3) float32 world frame, metres; triangle_object: (t,) int32 in [0, n);
+                triangle_colors: (t, 3, 3) float32 RGB per corner.
+            capacity: pad to this capacity; by default the exact sizes.
+
+        The BVH is built here, deterministically. Raises ``ValueError`` when the arrays do not fit
+        ``capacity`` or the tree is deeper than its stack.
+        """
+        return _build(
+            labels,
+            embeddings,
+            object_colors,
+            edges,
+            triangles,
+            triangle_object,
+            triangle_colors,
+            capacity=capacity,
+        )
 
 
 def _objects_to_arrays(meshes, labels, embeddings, colors, edges):
@@ -327,132 +352,3 @@ def _build(labels, emb, obj_col, edges, tris, tri_obj, tri_col, capacity=None) -
         bounds=jnp.asarray(np.stack([lo, hi]).astype(np.float32)),
         stack_size=capacity.stack_size,
     )
-
-
-# ----------------------------------------------------------------------------- save / load
-
-_SAVED = {
-    # name: (dtype, trailing shape or None for 1-D)
-    "labels": (np.int32, ()),
-    "embeddings": (np.float32, None),
-    "edges": (np.int32, (2,)),
-    "triangles": (np.float32, (3, 3)),
-    "triangle_object": (np.int32, ()),
-    "triangle_colors": (np.float32, (3, 3)),
-    "object_colors": (np.float32, (3,)),
-    "capacity": (np.int64, ()),
-}
-
-
-def save_scene(scene: SceneGraph, path: str | os.PathLike) -> None:
-    """Write ``scene`` to one versioned ``.npz`` file, atomically (temp file, then rename).
-
-    The file holds the map's content (objects, triangles, colours, edges) and its capacity; the
-    BVH is rebuilt deterministically on load, so a load gives back identical arrays.
-    """
-    path = Path(path)
-    n = scene.num_objects
-    keep_tri = np.asarray(scene.triangle_object) >= 0
-    keep_edge = np.asarray(scene.edges)[:, 0] >= 0
-    payload = {
-        "format": np.array(FORMAT_NAME),
-        "version": np.array(FORMAT_VERSION, np.int64),
-        "labels": np.asarray(scene.labels)[:n],
-        "embeddings": np.asarray(scene.embeddings)[:n],
-        "object_colors": np.asarray(scene.colors)[:n],
-        "edges": np.asarray(scene.edges)[keep_edge],
-        "triangles": np.asarray(scene.triangles)[keep_tri],
-        "triangle_object": np.asarray(scene.triangle_object)[keep_tri],
-        "triangle_colors": np.asarray(scene.triangle_colors)[keep_tri],
-        "capacity": np.asarray(tuple(scene.capacity), np.int64),
-    }
-    write_npz_atomic(path, payload)
-
-
-def read_map_file(path: Path, format_name: str, version: int, what: str) -> dict[str, np.ndarray]:
-    """The arrays of a versioned ``.npz`` map file, loaded without pickle.
-
-    Raises:
-        FileNotFoundError: no such file.
-        MapFormatError: not a readable ``.npz`` (corrupt, truncated, an object array), another
-            format name (``what`` names the expected kind), or another version.
-    """
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            content = {key: data[key] for key in data.files}
-    except FileNotFoundError:
-        raise
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as err:
-        raise MapFormatError(f"{path}: not a readable jaxloc map ({err})") from err
-    found = content.get("format", np.array(""))
-    if found.shape != () or str(found) != format_name:
-        raise MapFormatError(f"{path}: not a jaxloc {what} file")
-    found = content.get("version")
-    if found is None or found.shape != () or int(found) != version:
-        raise MapFormatError(
-            f"{path}: format version {found} is not supported (this jaxloc reads {version})"
-        )
-    return content
-
-
-def load_scene(path: str | os.PathLike) -> SceneGraph:
-    """Load and validate a map written by :func:`save_scene` (never unpickles).
-
-    Raises :class:`MapFormatError` for a corrupt, truncated, foreign or newer-version file, or one
-    whose arrays have wrong shapes, dtypes or non-finite values.
-    """
-    path = Path(path)
-    content = read_map_file(path, FORMAT_NAME, FORMAT_VERSION, "scene graph")
-    for key, (dtype, trailing) in _SAVED.items():
-        if key not in content:
-            raise MapFormatError(f"{path}: missing array '{key}'")
-        arr = content[key]
-        if arr.dtype != dtype:
-            raise MapFormatError(
-                f"{path}: '{key}' has dtype {arr.dtype}, expected {np.dtype(dtype)}"
-            )
-        if trailing is not None and arr.shape[1:] != trailing:
-            raise MapFormatError(f"{path}: '{key}' has shape {arr.shape}")
-        if np.issubdtype(arr.dtype, np.floating) and not np.all(np.isfinite(arr)):
-            raise MapFormatError(f"{path}: '{key}' contains NaN or inf")
-    n = content["labels"].shape[0]
-    t = content["triangles"].shape[0]
-    emb = content["embeddings"]
-    checks = [
-        (n >= 1 and emb.ndim == 2 and emb.shape[0] == n, "embeddings do not match labels"),
-        (
-            emb.ndim == 2 and np.allclose(np.linalg.norm(emb, axis=-1), 1.0, atol=1e-4),
-            "embeddings are not unit-norm",
-        ),
-        (content["object_colors"].shape[0] == n, "object_colors do not match labels"),
-        (t >= 1, "no triangles"),
-        (content["triangle_object"].shape[0] == t, "triangle_object does not match triangles"),
-        (content["triangle_colors"].shape[0] == t, "triangle_colors do not match triangles"),
-        (content["capacity"].shape == (len(Capacity._fields),), "bad capacity record"),
-    ]
-    for ok, message in checks:
-        if not ok:
-            raise MapFormatError(f"{path}: {message}")
-    tri_obj, edges = content["triangle_object"], content["edges"]
-    if (
-        tri_obj.min() < 0
-        or tri_obj.max() >= n
-        or (edges.size and (edges.min() < 0 or edges.max() >= n))
-    ):
-        raise MapFormatError(f"{path}: object indices out of range")
-    if np.any(content["labels"] < 0):
-        raise MapFormatError(f"{path}: negative labels")
-    capacity = Capacity(*(int(c) for c in content["capacity"]))
-    try:
-        return _build(
-            content["labels"],
-            emb,
-            content["object_colors"],
-            edges,
-            content["triangles"],
-            tri_obj,
-            content["triangle_colors"],
-            capacity=capacity,
-        )
-    except ValueError as err:
-        raise MapFormatError(f"{path}: {err}") from err

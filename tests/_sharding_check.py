@@ -25,14 +25,16 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxloc import _engines, sg2loc, sharding  # noqa: E402
-from jaxloc.datasets.outdoor import make_outdoor_world, make_query  # noqa: E402
-from jaxloc.resample import KLDConfig  # noqa: E402
-from jaxloc.triplet import build_map, localize_scan, tripletloc_config  # noqa: E402
+from jaxloc import sg2loc, sharding
+from jaxloc.m2loc import build_map, localize_scan, localize_scans, tripletloc_config
+from jaxloc.raycasting import embree, engines
+from jaxloc.sg2loc import sharded
+from jaxloc.sg2loc.resampling import KLDConfig
+from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 NUM_FRAMES = tiny.CHUNK
 #: The nearest-hit engines installed here.
-ENGINES = ["jax"] + [e for e in ("embree", "warp") if _engines.is_installed(e)]
+ENGINES = ["jax"] + [e for e in ("embree", "warp") if engines.is_installed(e)]
 
 
 def digest(tree) -> str:
@@ -61,9 +63,9 @@ def particle_checks(mesh, engine: str = "auto", particle_chunk: int | None = Non
     key = jax.random.key(2)
 
     single_state, single_info = tiny.RUN_PASS(key, state, frames, scene, config)
-    sharded_state, sharded_info = sharding.sharded_run_pass(
+    sharded_state, sharded_info = sharded.sharded_run_pass(
         key,
-        sharding.shard_particles(state, mesh),
+        sharded.shard_particles(state, mesh),
         sharding.replicate(frames, mesh),
         sharding.replicate(scene, mesh),
         config,
@@ -88,7 +90,7 @@ def particle_checks(mesh, engine: str = "auto", particle_chunk: int | None = Non
     keys = jax.random.split(jax.random.key(3), batch)
     states = jax.tree.map(lambda a: jnp.stack([a] * batch), state)
     stacked = jax.tree.map(lambda a: jnp.stack([a] * batch), frames)
-    batch_state, batch_info = sharding.sharded_run_passes(
+    batch_state, batch_info = sharded.sharded_run_passes(
         keys,
         sharding.shard_batch(states, mesh),
         sharding.shard_batch(stacked, mesh),
@@ -114,21 +116,21 @@ def engine_call_checks(mesh) -> dict:
     config = dataclasses.replace(tiny.step_config(scene), engine="embree")
     state = tiny.initial_state(scene)
     calls = []
-    host = _engines._embree_host
+    host = embree._embree_host
 
     def counting(key, triangles, origins, directions, valid, out=None):
         calls.append(int(np.prod(np.shape(origins)[:-1])))
         return host(key, triangles, origins, directions, valid, out)
 
-    _engines._embree_host = counting
+    embree._embree_host = counting
     try:
         frame = jax.tree.map(lambda a: a[0], tiny.frames(NUM_FRAMES))
-        sharding.sharded_step(
-            jax.random.key(7), sharding.shard_particles(state, mesh), frame, scene, config, mesh
+        sharded.sharded_step(
+            jax.random.key(7), sharded.shard_particles(state, mesh), frame, scene, config, mesh
         )
         jax.effects_barrier()
     finally:
-        _engines._embree_host = host
+        embree._embree_host = host
     return {"embree_rays_per_call": sorted(calls), "rays_per_particle": config.grid.uv.shape[0]}
 
 
@@ -165,7 +167,7 @@ def query_checks(mesh) -> dict:
         for _ in range(3)
     ]
     scans = [(q.points, q.labels) for q in queries] + [(np.zeros((0, 3)), np.zeros(0, int))]
-    batched = sharding.localize_scans(triplet_map, scans, mesh)
+    batched = localize_scans(triplet_map, scans, mesh)
     alone = [localize_scan(triplet_map, None, p, lab) for p, lab in scans]
     pairs = list(zip(alone, batched, strict=True))
     return {

@@ -16,12 +16,12 @@ import numpy as np
 import trimesh
 
 from jaxloc.camera import Camera, patch_grid
-from jaxloc.filter import Frame, Region, StepConfig, run_pass
-from jaxloc.particles import ParticleState, init_region
-from jaxloc.resample import KLDConfig
 from jaxloc.scene import SceneGraph
-from jaxloc.scores import ObservationConfig
-from jaxloc.sequence import Sequence
+from jaxloc.sg2loc.filter import Frame, Region, StepConfig, run_pass
+from jaxloc.sg2loc.particles import ParticleState, init_region
+from jaxloc.sg2loc.resampling import KLDConfig
+from jaxloc.sg2loc.scores import ObservationConfig
+from jaxloc.sg2loc.sequence import Sequence
 
 CAPACITY = 16
 EMBEDDING_DIM = 8

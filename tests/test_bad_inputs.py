@@ -1,9 +1,9 @@
 """The bad-input catalogue (``docs/bad_inputs.md``): each row not already tested elsewhere is here.
 
 Host-side checks (maps, mesh and map files, particles) run eagerly and cost nothing; the filter
-rows (bad values inside a hand-built :class:`~jaxloc.filter.Frame`, particles outside the map,
-likelihood underflow, all-invalid depth) share the one compiled pass of ``tests/_tiny_world.py``:
-traced values such as sigma change without recompiling.
+rows (bad values inside a hand-built :class:`~jaxloc.sg2loc.filter.Frame`, particles outside the
+map, likelihood underflow, all-invalid depth) share the one compiled pass of
+``tests/_tiny_world.py``: traced values such as sigma change without recompiling.
 """
 
 from __future__ import annotations
@@ -18,10 +18,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxloc import mesh_io
-from jaxloc.particles import ParticleState, init_box, init_region, inject_uniform, predict
+from jaxloc.io import load_instance_map, load_semantickitti_scan
+from jaxloc.io import meshes as mesh_io
+from jaxloc.m2loc import build_map
 from jaxloc.scene import Capacity, SceneGraph
-from jaxloc.triplet import build_map, load_instance_map, load_semantickitti_scan
+from jaxloc.sg2loc.particles import ParticleState, init_box, init_region, inject_uniform, predict
 
 
 def _box() -> trimesh.Trimesh:

@@ -14,7 +14,7 @@ from _camera_fixtures import camera_to_world, write_matrix
 from PIL import Image
 
 from jaxloc.camera import Camera
-from jaxloc.datasets.camera_folder import load_camera_folder, yaw_pose_and_tilt
+from jaxloc.io.camera_folder import load_camera_folder, yaw_pose_and_tilt
 
 #: A ScanNet-like colour intrinsic matrix (ScanNet's 1296x968 colour camera, scaled by 1/8).
 K_COLOR = np.array(

@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 
 from jaxloc.cli import main
-from jaxloc.datasets.outdoor import make_outdoor_world, make_query
-from jaxloc.triplet import cluster_instances, load_semantickitti_scan, localization_errors
+from jaxloc.io import load_semantickitti_scan
+from jaxloc.m2loc import cluster_instances, localization_errors
+from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 REAL_MAP = DATA / "helipr_instance_maps" / "KAIST04"

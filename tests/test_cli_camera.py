@@ -21,8 +21,8 @@ from _camera_fixtures import (
 
 from jaxloc.camera import Camera
 from jaxloc.cli import main
-from jaxloc.datasets.scene_builder import onehot_classes
-from jaxloc.scene import load_scene
+from jaxloc.io.scene_map import load_scene
+from jaxloc.mapping import onehot_classes
 
 FRAMES = [0, 2, 11, 30, 102, 1000]
 NAMES = ["floor", "wall", "bed", "cabinet", "table", "chair"]

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from jaxloc.cli import main
-from jaxloc.datasets.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
-from jaxloc.datasets.outdoor import make_outdoor_world
+from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
+from jaxloc.synthetic.outdoor import make_outdoor_world
 
 
 def run(argv, capsys):
@@ -158,7 +158,7 @@ def test_save_map_path_is_checked_before_any_work(sequence_dir, built, tmp_path,
 def test_no_robust_is_m2loc_as_published():
     from jaxloc.cli import build_parser
     from jaxloc.cli._lidar import triplet_config
-    from jaxloc.triplet import m2loc_config
+    from jaxloc.m2loc import m2loc_config
 
     parser = build_parser()
     default = triplet_config(parser.parse_args(["localize-lidar", "map", "scan.bin"]))

@@ -9,7 +9,6 @@ dependency on x86-64, warp-lang comes with the test extra and runs on its CPU ba
 from __future__ import annotations
 
 import functools
-import importlib
 
 import equinox as eqx
 import jax
@@ -19,11 +18,11 @@ import pytest
 from conftest import NUM_RAYS, brute_force, random_rays, random_scene
 
 from jaxloc import Camera, raycast, render_batch, stride_grid
-from jaxloc.filter import StepConfig
-from jaxloc.refine import RefineConfig
+from jaxloc.raycasting import embree, engines
+from jaxloc.raycasting._cache import fingerprint
 from jaxloc.sg2loc import SG2LocConfig
-
-engines = importlib.import_module("jaxloc._engines")
+from jaxloc.sg2loc.filter import StepConfig
+from jaxloc.sg2loc.refine import RefineConfig
 
 OPTIONAL = ("embree", "warp")
 INSTALLED = ["jax"] + [e for e in OPTIONAL if engines.is_installed(e)]
@@ -198,11 +197,11 @@ def test_depth_gradients_w_r_t_the_pose_are_the_same_for_every_engine(engine, ro
 
 def test_fingerprint_is_exact_and_sensitive(scene):
     triangles = scene.triangles
-    key = np.asarray(engines.fingerprint(triangles))
-    np.testing.assert_array_equal(key, np.asarray(jax.jit(engines.fingerprint)(triangles)))
+    key = np.asarray(fingerprint(triangles))
+    np.testing.assert_array_equal(key, np.asarray(jax.jit(fingerprint)(triangles)))
     flipped = np.asarray(triangles).copy().view(np.uint32)
     flipped[3, 1, 2] ^= 1  # one bit of one coordinate
-    other = np.asarray(engines.fingerprint(jnp.asarray(flipped.view(np.float32))))
+    other = np.asarray(fingerprint(jnp.asarray(flipped.view(np.float32))))
     assert key.dtype == np.uint32 and key.shape == (2,)
     assert np.all(key != other)
 
@@ -240,13 +239,13 @@ def test_padding_triangles_and_invalid_rays_never_reach_embree(scene, rays, monk
         pytest.skip("embreex not installed")
     padded = random_scene(0, capacity=scene.capacity._replace(triangles=scene.num_triangles + 500))
     traced = []
-    nearest = engines._EmbreeMap.nearest
+    nearest = embree._EmbreeMap.nearest
 
     def counting(self, origins, directions, faces=None):
         traced.append((len(self.ids), origins.shape[0]))
         return nearest(self, origins, directions, faces)
 
-    monkeypatch.setattr(engines._EmbreeMap, "nearest", counting)
+    monkeypatch.setattr(embree._EmbreeMap, "nearest", counting)
     o = rays[0].copy()
     o[::3] = np.nan  # a third of the rays invalid
     hits = _np(_cast("embree")(padded, o, rays[1]))

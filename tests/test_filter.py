@@ -1,4 +1,4 @@
-"""The jitted SG2Loc filter (:mod:`jaxloc.filter`) and the coarse-to-fine localizer
+"""The jitted SG2Loc filter (:mod:`jaxloc.sg2loc.filter`) and the coarse-to-fine localizer
 (:mod:`jaxloc.sg2loc`) on a tiny synthetic room.
 
 Cost model: the raycaster does ~70k rays per CPU-second and one compilation of the step costs
@@ -6,7 +6,7 @@ tens of seconds on the shared 2-core machine, so everything here is tiny (a 4-5 
 coarse meshes, 160x90 images with the 9x16 patch grid of 10 px patches, stride 10 = 16x9 rays
 per particle, a few hundred particles, 5 frames) and compiled functions are shared:
 
-* every :func:`~jaxloc.filter.step` test goes through ONE module-level ``jax.jit`` (``STEP``)
+* every :func:`~jaxloc.sg2loc.filter.step` test goes through ONE module-level ``jax.jit`` (``STEP``)
   with one set of static shapes, which is also what the no-retrace test counts;
 * every full-setting :func:`~jaxloc.sg2loc.localize` test reuses the ``located`` fixture's two
   compiled rounds; the depth/colour-free tests share one single-round compilation.
@@ -23,14 +23,14 @@ import pytest
 
 from jaxloc import Sequence
 from jaxloc.camera import stride_grid
-from jaxloc.datasets.indoor import EpisodeConfig, RoomConfig, SensorConfig, make_episode
-from jaxloc.filter import Frame, Region, StepConfig, frames_on_grid, run_pass, step
 from jaxloc.geometry import compose_yaw, ego_motion, wrap_angle
-from jaxloc.particles import ParticleState, init_region
-from jaxloc.resample import KLDConfig
 from jaxloc.scene import SceneGraph
-from jaxloc.scores import DEPTH_MAX, SEMANTIC_MAX, ObservationConfig
 from jaxloc.sg2loc import SG2LocConfig, SG2LocResult, carry_back, localize
+from jaxloc.sg2loc.filter import Frame, Region, StepConfig, frames_on_grid, run_pass, step
+from jaxloc.sg2loc.particles import ParticleState, init_region
+from jaxloc.sg2loc.resampling import KLDConfig
+from jaxloc.sg2loc.scores import DEPTH_MAX, SEMANTIC_MAX, ObservationConfig
+from jaxloc.synthetic.indoor import EpisodeConfig, RoomConfig, SensorConfig, make_episode
 
 #: A small room with coarse meshes (~6k triangles) and 160x90 images (9x16 patches of 10 px).
 EPISODE_CONFIG = EpisodeConfig(

@@ -9,8 +9,8 @@ import pytest
 
 from jaxloc import raycast
 from jaxloc.camera import stride_grid
-from jaxloc.datasets import _indoor_frames as frames
-from jaxloc.datasets.indoor import (
+from jaxloc.geometry import ego_motion, rotation_world_cam
+from jaxloc.synthetic.indoor import (
     CLASS_NAMES,
     ChangeConfig,
     EpisodeConfig,
@@ -18,11 +18,11 @@ from jaxloc.datasets.indoor import (
     SensorConfig,
     TrajectoryConfig,
     change_room,
+    frames,
     make_episode,
     make_room,
     object_embeddings,
 )
-from jaxloc.geometry import ego_motion, rotation_world_cam
 
 SMALL = EpisodeConfig(sensor=SensorConfig(width=160, height=90))
 SEEDS = (0, 1, 2, 3)

@@ -1,4 +1,4 @@
-"""Merging synthetic rooms into one map (jaxloc.datasets._indoor_merge), checked with trimesh."""
+"""Merging synthetic rooms into one map (jaxloc.synthetic.indoor.merge), checked with trimesh."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 import trimesh
 from conftest import brute_force
 
-from jaxloc.datasets import indoor
-from jaxloc.datasets._indoor_merge import merge_rooms
+from jaxloc.synthetic import indoor
+from jaxloc.synthetic.indoor.merge import merge_rooms
 
 SMALL = indoor.RoomConfig(
     length_range=(4.0, 5.0), width_range=(4.0, 5.0), num_objects=(15, 16), vertex_range=(100, 120)

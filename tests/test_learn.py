@@ -1,4 +1,4 @@
-"""Learned likelihood parameters (:mod:`jaxloc.learn`): parameter mapping, window particles,
+"""Learned likelihood parameters (:mod:`jaxloc.sg2loc.learn`): parameter mapping, window particles,
 the loss against a float64 numpy reference, gradients against float64 finite differences,
 degenerate windows, training, determinism and tracing.
 
@@ -17,13 +17,18 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxloc import Camera, Sequence, learn, render, stride_grid
-from jaxloc.filter import Region
+from jaxloc import Camera, Sequence, render, stride_grid
 from jaxloc.geometry import compose_yaw, ego_motion, wrap_angle
-from jaxloc.resample import KLDConfig
 from jaxloc.scene import SceneGraph
-from jaxloc.scores import DEPTH_MAX, ObservationConfig, match_patches, particle_log_likelihood
-from jaxloc.sg2loc import SG2LocConfig, localize
+from jaxloc.sg2loc import SG2LocConfig, learn, localize
+from jaxloc.sg2loc.filter import Region
+from jaxloc.sg2loc.resampling import KLDConfig
+from jaxloc.sg2loc.scores import (
+    DEPTH_MAX,
+    ObservationConfig,
+    match_patches,
+    particle_log_likelihood,
+)
 
 CAMERA = Camera.from_fov(16, 9, 70.0)
 ROWS, COLS = 3, 4
@@ -392,7 +397,7 @@ def test_train_step_traces_once(windows, monkeypatch):
         traces["count"] += 1
         return original(*args, **kwargs)
 
-    monkeypatch.setattr(learn, "batch_loss", counted)
+    monkeypatch.setattr(learn.training, "batch_loss", counted)  # what the train step calls
     optimizer = learn.adam(0.05)
     step = learn.make_train_step(optimizer, BASE, learn.LossConfig())
     params = learn.LikelihoodParams.from_config(BASE)

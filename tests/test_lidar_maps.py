@@ -9,22 +9,16 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from jaxloc.datasets.lidar_scans import (
-    KITTI_TR,
-    make_lidar_sequence,
-    write_semantickitti_sequence,
-)
-from jaxloc.datasets.outdoor import _terrain_normal, make_outdoor_world
-from jaxloc.triplet import (
-    MapBuildConfig,
-    build_lidar_maps,
-    fit_plane,
+from jaxloc.io import (
     load_instance_map,
     load_lidar_sequence,
     load_road_normals,
     read_kitti_calibration,
     save_lidar_maps,
 )
+from jaxloc.mapping import MapBuildConfig, build_lidar_maps, fit_plane
+from jaxloc.synthetic.lidar_scans import KITTI_TR, make_lidar_sequence, write_semantickitti_sequence
+from jaxloc.synthetic.outdoor import _terrain_normal, make_outdoor_world
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 REAL_SCAN = DATA / "semantickitti_scan" / "000000.bin"

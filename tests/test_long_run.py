@@ -1,6 +1,6 @@
 """Long runs stay on one compilation: chunked filter passes with a carried state and global frame
 indices (what ``benchmarks/long_run.py`` does for 1000 frames; memory is measured there, not
-asserted here). Query-level no-retrace of ``localize_scan``: tests/test_triplet_pipeline.py.
+asserted here). Query-level no-retrace of ``localize_scan``: tests/test_m2loc_pipeline.py.
 """
 
 from __future__ import annotations

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxloc import particles as P
 from jaxloc.geometry import compose_yaw, ego_motion
+from jaxloc.sg2loc import particles as P
 
 KEY = jax.random.PRNGKey(0)
 HEIGHTS = np.array(P.PAPER_HEIGHTS)

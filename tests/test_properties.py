@@ -18,8 +18,8 @@ from hypothesis import strategies as st
 
 from jaxloc import geometry as g
 from jaxloc import raycast
+from jaxloc.m2loc import DescriptorConfig, describe_points
 from jaxloc.scene import Capacity, SceneGraph
-from jaxloc.triplet import DescriptorConfig, describe_points
 
 compose = jax.jit(g.compose_yaw)
 ego = jax.jit(g.ego_motion)

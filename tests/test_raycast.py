@@ -6,8 +6,6 @@ consistency and gradients.
 from __future__ import annotations
 
 import functools
-import importlib
-import importlib.util
 
 import jax
 import jax.numpy as jnp
@@ -29,12 +27,14 @@ from conftest import (
     trimesh_first,
 )
 
-from jaxloc.bvh import build_bvh
+from jaxloc.raycasting import raycast
+from jaxloc.raycasting.bvh import build_bvh
+from jaxloc.raycasting.traversal import _wide_nodes
+from jaxloc.raycasting.triangle import T_MIN, triangle_hit
 from jaxloc.scene import MEDIAN_DEPTH, SceneGraph
 
-rc = importlib.import_module("jaxloc._raycast")
 #: This module tests the pure-JAX engine (tests/test_engines.py compares the others with it).
-jax_raycast = functools.partial(rc.raycast, engine="jax")
+jax_raycast = functools.partial(raycast, engine="jax")
 
 MIN_AGREEMENT = 0.999
 T_TOL = 1e-4  # metres
@@ -94,11 +94,11 @@ def test_moller_trumbore_kernel_matches_float64_reference():
     dirs = (target - origins) * rng.uniform(0.3, 3.0, (n, 1))
     v0, e1, e2 = tris[:, 0], tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]
     f32 = [a.astype(np.float32).T for a in (origins, dirs, v0, e1, e2)]  # (3, n) columns
-    t = np.asarray(jax.jit(rc._triangle_hit)(*f32))
+    t = np.asarray(jax.jit(triangle_hit)(*f32))
     # Reference on the same float32 inputs, in float64 (t along the given direction).
     ref = [a.T.astype(np.float64) for a in f32]
     t_ref, u, v, det = mt_float64(*ref)
-    hit_ref = (np.abs(det) > 1e-12) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t_ref > rc.T_MIN)
+    hit_ref = (np.abs(det) > 1e-12) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t_ref > T_MIN)
     margin = np.minimum(np.minimum(u, v), 1 - u - v)
     clear = np.abs(margin) > 1e-4  # not on an edge, where float32 may decide either way
     assert clear.mean() > 0.99 and 0.3 < hit_ref.mean() < 0.7
@@ -127,7 +127,7 @@ def test_moller_trumbore_kernel_edge_cases():
     cols = lambda k: np.array([np.asarray(c[k], np.float32) for c in cases]).T  # noqa: E731
     tris = np.array([c[2] for c in cases], np.float32)
     v0, e1, e2 = tris[:, 0].T, (tris[:, 1] - tris[:, 0]).T, (tris[:, 2] - tris[:, 0]).T
-    t = np.asarray(rc._triangle_hit(cols(0), cols(1), v0, e1, e2))
+    t = np.asarray(triangle_hit(cols(0), cols(1), v0, e1, e2))
     np.testing.assert_allclose(t, [c[3] for c in cases], rtol=1e-6)
 
 
@@ -223,7 +223,7 @@ def test_exact_nearest_hit_after_many_leaves(scene):
 
 def test_wide_nodes_are_grandchildren_with_their_boxes(scene):
     """The 4-wide view of the BVH against a numpy reference built from the binary arrays."""
-    refs, boxes = (np.asarray(a) for a in rc._wide_nodes(scene))
+    refs, boxes = (np.asarray(a) for a in _wide_nodes(scene))
     children = np.asarray(scene.node_children)
     bounds = np.asarray(scene.node_bounds)
     num_nodes = children.shape[0]
@@ -317,8 +317,8 @@ def test_invalid_rays_miss_without_nan(scene, rays, hits):
 
 def test_bad_shapes_raise(scene):
     with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
-        rc.raycast(scene, np.zeros((4, 2)), np.ones((4, 2)))
-    empty = rc.raycast(scene, np.zeros((0, 3)), np.ones((0, 3)))
+        raycast(scene, np.zeros((4, 2)), np.ones((4, 2)))
+    empty = raycast(scene, np.zeros((0, 3)), np.ones((0, 3)))
     assert empty.t.shape == (0,) and empty.barycentric.shape == (0, 3)
 
 

@@ -16,13 +16,11 @@ from _camera_fixtures import (
     write_scannet_scan,
 )
 
-from jaxloc.datasets.reconstruction import read_3rscan, read_generic, read_scannet
-from jaxloc.datasets.scene_builder import (
-    decimate,
-    load_embedding_table,
-    onehot_classes,
-    scene_graph_from_reconstruction,
-)
+from jaxloc.io.embedding_table import load_embedding_table
+from jaxloc.io.ply import read_generic
+from jaxloc.io.rscan import read_3rscan
+from jaxloc.io.scannet import read_scannet
+from jaxloc.mapping import decimate, onehot_classes, scene_graph_from_reconstruction
 
 TARGET = 40
 

@@ -1,4 +1,4 @@
-"""Tests of jaxloc.refine: residuals vs numpy references, gradients vs finite differences,
+"""Tests of jaxloc.sg2loc.refine: residuals vs numpy references, gradients vs finite differences,
 degenerate inputs, convergence on noise-free frames, traces, bad input.
 
 The scene is the closed 6 x 4 x 3 m box room of conftest (analytic float64 raycasts in numpy) seen
@@ -25,7 +25,7 @@ from conftest import BODY_CAM, ROOM, box_room, room_hits, rot_x, rot_y, rot_z
 from jaxloc import Camera, SceneGraph, Sequence
 from jaxloc.geometry import ego_motion, yaw_pose_to_se3
 from jaxloc.lsq import RobustLoss
-from jaxloc.refine import (
+from jaxloc.sg2loc.refine import (
     STATUS_BAD_INPUT,
     STATUS_DEGENERATE,
     STATUS_DIVERGED,
@@ -42,7 +42,7 @@ from jaxloc.refine import (
     refine_pose,
     reprojection_residuals,
 )
-from jaxloc.refine import _pose_std as pose_std
+from jaxloc.sg2loc.refine.solve import _pose_std as pose_std
 
 CAMERA = Camera.from_fov(80, 45, 60.0)
 TILT = np.array([0.35, 0.05])

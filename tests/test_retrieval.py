@@ -1,4 +1,4 @@
-"""Sequential scene retrieval (jaxloc.retrieval) against a loop-by-loop numpy reference.
+"""Sequential scene retrieval (jaxloc.sg2loc.retrieval) against a loop-by-loop numpy reference.
 
 Tiny galleries (a few scenes of a few objects in d = 8) keep every test to a fraction of a
 second once compiled; the compiled shapes are shared between tests.
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxloc import retrieval
-from jaxloc.retrieval import Gallery, recall_at_k, retrieve, true_rank
 from jaxloc.scene import SceneGraph
+from jaxloc.sg2loc import retrieval
+from jaxloc.sg2loc.retrieval import Gallery, recall_at_k, retrieve, true_rank
 
 DIM = 8
 OBJECTS = (2, 5, 4)  # objects per scene

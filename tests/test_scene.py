@@ -1,6 +1,6 @@
 """The scene-graph map: building from meshes, input validation, save/load (exact, atomic,
 validated, never unpickling), no recompilation across maps of one capacity, and the mesh-file
-loader (:mod:`jaxloc.mesh_io`)."""
+loader (:mod:`jaxloc.io.meshes`)."""
 
 from __future__ import annotations
 
@@ -14,8 +14,10 @@ import trimesh
 from conftest import cast_padded, random_meshes, random_rays
 
 from jaxloc import raycast
-from jaxloc.mesh_io import load_objects_file, load_scene_from_files
-from jaxloc.scene import Capacity, MapFormatError, SceneGraph, load_scene, save_scene
+from jaxloc.io import MapFormatError
+from jaxloc.io.meshes import load_objects_file, load_scene_from_files
+from jaxloc.io.scene_map import load_scene, save_scene
+from jaxloc.scene import Capacity, SceneGraph
 
 EMB8 = np.eye(8)
 

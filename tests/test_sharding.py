@@ -24,7 +24,8 @@ import numpy as np
 import pytest
 
 from jaxloc import sg2loc, sharding
-from jaxloc.particles import ParticleState
+from jaxloc.sg2loc import sharded
+from jaxloc.sg2loc.particles import ParticleState
 
 SCRIPT = Path(__file__).with_name("_sharding_check.py")
 #: The package of each optional engine.
@@ -127,10 +128,10 @@ def test_helpers_validate_their_arguments():
     mesh = sharding.device_mesh()
     assert mesh.axis_names == (sharding.AXIS,)
     state = ParticleState(np.zeros((6, 4), np.float32), np.zeros(6, np.float32), np.ones(6, bool))
-    placed = sharding.shard_particles(state, mesh)
+    placed = sharded.shard_particles(state, mesh)
     assert placed.poses.sharding.spec == jax.sharding.PartitionSpec(sharding.AXIS)
     with pytest.raises(TypeError, match="ParticleState"):
-        sharding.shard_particles(np.zeros((6, 4)), mesh)
+        sharded.shard_particles(np.zeros((6, 4)), mesh)
     with pytest.raises(ValueError, match="leading batch axis"):
         sharding.shard_batch({"x": np.float32(1.0)}, mesh)
     with pytest.raises(ValueError, match="at least one device"):

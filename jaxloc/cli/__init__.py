@@ -281,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
         "triplet",
         help="ms/query of M2Loc on a synthetic world or a map folder",
         description="Times localize_scan on seeded scan-like queries cut from the map "
-        "(jaxloc.datasets.outdoor.make_query), and reports the success rate.",
+        "(jaxloc.synthetic.outdoor.make_query), and reports the success rate.",
     )
     triplet.add_argument("--queries", type=int, default=20, help="queries (default 20)")
     triplet.add_argument(

@@ -42,7 +42,7 @@ def run_bench_raycast(args: argparse.Namespace) -> int:
 
     from jaxloc import render_batch, stride_grid
     from jaxloc.camera import Camera
-    from jaxloc.datasets.indoor import RoomConfig, make_room, scene_graph
+    from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
 
     _check_positive(args, ("poses", "width", "height", "stride", "objects", "vertices", "repeats"))
     room = make_room(
@@ -84,9 +84,9 @@ def run_bench_filter(args: argparse.Namespace) -> int:
     import jax
 
     from jaxloc.camera import stride_grid
-    from jaxloc.datasets import indoor
-    from jaxloc.resample import KLDConfig
     from jaxloc.sg2loc import SG2LocConfig, localize
+    from jaxloc.sg2loc.resampling import KLDConfig
+    from jaxloc.synthetic import indoor
 
     _check_positive(args, ("particles", "frames", "width", "height", "stride"))
     start = time.perf_counter()
@@ -122,9 +122,8 @@ def run_bench_filter(args: argparse.Namespace) -> int:
 
 
 def run_bench_triplet(args: argparse.Namespace) -> int:
-    from jaxloc.datasets.outdoor import make_outdoor_world, make_query
-    from jaxloc.triplet import localization_errors
-    from jaxloc.triplet._metrics import SUCCESS_RRE_DEG, SUCCESS_RTE_M
+    from jaxloc.m2loc import SUCCESS_RRE_DEG, SUCCESS_RTE_M, localization_errors
+    from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
     _check_positive(args, ("queries", "max_kept", "blocks"))
     check_config_args(args)

@@ -41,7 +41,7 @@ exit status: 0 on success, 2 on missing or malformed files or bad options (one-l
 
 def add_parser(commands) -> None:
     """Register ``localize-camera`` on the ``jaxloc`` subcommand parsers."""
-    from jaxloc.particles import PAPER_HEIGHTS
+    from jaxloc.sg2loc.particles import PAPER_HEIGHTS
 
     parser = commands.add_parser(
         "localize-camera",
@@ -82,8 +82,8 @@ def add_parser(commands) -> None:
 
 
 def _config(args: argparse.Namespace):
-    from jaxloc.resample import KLDConfig
     from jaxloc.sg2loc import SG2LocConfig
+    from jaxloc.sg2loc.resampling import KLDConfig
 
     if args.particles < 1:
         raise InputError(f"--particles must be >= 1, got {args.particles}")
@@ -104,7 +104,7 @@ def _refine_last(scene, folder, result) -> dict:
 
     from jaxloc.geometry import yaw_pose_to_se3
     from jaxloc.metrics import position_error, rotation_error_deg
-    from jaxloc.refine import refine
+    from jaxloc.sg2loc.refine import refine
 
     refined = refine(scene, folder.sequence, result.poses[-1])
     T = np.asarray(refined.pose.as_matrix(), np.float64)
@@ -120,11 +120,11 @@ def _refine_last(scene, folder, result) -> dict:
 def run_localize_camera(args: argparse.Namespace) -> int:
     import jax
 
-    from jaxloc.datasets.camera_folder import load_camera_folder
+    from jaxloc.io.camera_folder import load_camera_folder
+    from jaxloc.io.scene_map import load_scene
     from jaxloc.metrics import summarize, yaw_pose_errors
-    from jaxloc.scene import load_scene
     from jaxloc.sg2loc import localize
-    from jaxloc.viz import plot_rounds
+    from jaxloc.sg2loc.figures import plot_rounds
 
     config = _config(args)
     try:

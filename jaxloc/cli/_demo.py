@@ -11,7 +11,7 @@ import numpy as np
 def demo_episode_config(args: argparse.Namespace):
     """The demo's room (4-5 m square, 15-18 objects) seen by an ``args.width x args.height``
     camera; ``bench filter`` uses it too (same scene and camera: shared compilations)."""
-    from jaxloc.datasets import indoor
+    from jaxloc.synthetic import indoor
 
     return indoor.EpisodeConfig(
         room=indoor.RoomConfig(
@@ -25,11 +25,11 @@ def run_demo(args: argparse.Namespace) -> int:
     import jax
 
     from jaxloc import render_batch, stride_grid
-    from jaxloc.datasets import indoor
     from jaxloc.metrics import summarize, yaw_pose_errors
-    from jaxloc.resample import KLDConfig
     from jaxloc.sg2loc import SG2LocConfig, localize
-    from jaxloc.viz import plot_rounds
+    from jaxloc.sg2loc.figures import plot_rounds
+    from jaxloc.sg2loc.resampling import KLDConfig
+    from jaxloc.synthetic import indoor
 
     start = time.perf_counter()
     episode = indoor.make_episode(args.seed, args.frames, demo_episode_config(args))

@@ -102,7 +102,8 @@ def check_scan_path(path: Path) -> None:
 def load_scan(path: Path, classes: Sequence[int]) -> ScanInstances:
     """Instance centroids of a scan given as a SemanticKITTI ``.bin`` (+ ``.label``), a centroid
     ``.txt`` (``class_id x y z``), or a folder in the map's format (``instances/<class>.txt``)."""
-    from jaxloc.triplet import cluster_instances, load_instance_map, load_semantickitti_scan
+    from jaxloc.io import load_instance_map, load_semantickitti_scan
+    from jaxloc.m2loc import cluster_instances
 
     check_scan_path(path)
     start = time.perf_counter()
@@ -124,7 +125,7 @@ def load_scan(path: Path, classes: Sequence[int]) -> ScanInstances:
 def load_poses(path: Path, count: int) -> np.ndarray:
     """Ground-truth ``T_map_scan`` per scan: one pose per line, 12 numbers (KITTI 3x4 row-major)
     or 16 (4x4 row-major), in the order of the scans. Returns (count, 4, 4) float64."""
-    from jaxloc.triplet import read_poses
+    from jaxloc.io import read_poses
 
     try:
         poses = read_poses(path)
@@ -156,7 +157,7 @@ def _matching_options(args: argparse.Namespace) -> dict:
 
 
 def triplet_config(args: argparse.Namespace):
-    from jaxloc.triplet import m2loc_config, tripletloc_config
+    from jaxloc.m2loc import m2loc_config, tripletloc_config
 
     options = dict(
         top_k=DEFAULT_K,
@@ -181,9 +182,9 @@ def check_config_args(args: argparse.Namespace) -> None:
 def load_map_files(map_dir: Path, classes: Sequence[int], use_rsn: bool):
     """Read ``instances/<class>.txt`` and, when present and wanted, ``RSN/road_normal.txt``.
 
-    Returns the :class:`~jaxloc.triplet.InstanceMap` and the RoadNormals (or None).
+    Returns the :class:`~jaxloc.io.InstanceMap` and the RoadNormals (or None).
     """
-    from jaxloc.triplet import load_instance_map, load_road_normals
+    from jaxloc.io import load_instance_map, load_road_normals
 
     if not map_dir.is_dir():
         raise InputError(f"map folder not found: {map_dir}")
@@ -201,8 +202,8 @@ def load_map_files(map_dir: Path, classes: Sequence[int], use_rsn: bool):
 
 
 def describe_map(points: np.ndarray, labels: np.ndarray, config, normals, name: str):
-    """:func:`jaxloc.triplet.build_map` with its input errors reported as InputError."""
-    from jaxloc.triplet import build_map
+    """:func:`jaxloc.m2loc.build_map` with its input errors reported as InputError."""
+    from jaxloc.m2loc import build_map
 
     try:
         return build_map(points, labels, config, normals)
@@ -211,14 +212,14 @@ def describe_map(points: np.ndarray, labels: np.ndarray, config, normals, name: 
 
 
 def open_map(path: Path, args: argparse.Namespace):
-    """The described map of ``MAP``: a saved ``.npz`` (:func:`jaxloc.triplet.save_triplet_map`;
+    """The described map of ``MAP``: a saved ``.npz`` (:func:`jaxloc.io.save_triplet_map`;
     the options that do not change descriptors override its settings) or a map folder (described
     with the options). Returns the TripletMap and the number of seconds it took."""
     import dataclasses
 
     import equinox as eqx
 
-    from jaxloc.triplet import load_triplet_map
+    from jaxloc.io import load_triplet_map
 
     start = time.perf_counter()
     if path.is_file():
@@ -252,7 +253,7 @@ def expand_scans(paths: Sequence[Path], every: int) -> tuple[list[Path], np.ndar
     """SCAN arguments as scan paths: a sequence folder (``velodyne/*.bin`` + ``labels/``) gives
     every ``every``-th of its scans. Returns the paths and, when every argument is a sequence
     with ``poses.txt``, their ground-truth ``T_map_scan`` (else None)."""
-    from jaxloc.triplet import is_sequence_dir, load_lidar_sequence
+    from jaxloc.io import is_sequence_dir, load_lidar_sequence
 
     scans, poses = [], []
     for path in paths:
@@ -276,10 +277,10 @@ def expand_scans(paths: Sequence[Path], every: int) -> tuple[list[Path], np.ndar
 def localize_one(triplet_map, scan: ScanInstances):
     """Localize a scan; the first call of a query size compiles, so it is run again to time it.
 
-    Returns the :class:`~jaxloc.triplet.LocalizationResult` and the compile time (s, 0 if none).
+    Returns the :class:`~jaxloc.m2loc.LocalizationResult` and the compile time (s, 0 if none).
     """
-    from jaxloc.triplet import localize_scan
-    from jaxloc.triplet._pipeline import TRACE_COUNTS
+    from jaxloc.m2loc import localize_scan
+    from jaxloc.m2loc._query import TRACE_COUNTS
 
     traces = sum(TRACE_COUNTS.values())
     start = time.perf_counter()
@@ -293,7 +294,7 @@ def localize_one(triplet_map, scan: ScanInstances):
 
 
 def _scan_record(name: str, scan: ScanInstances, result, compile_s: float, T_gt) -> dict:
-    from jaxloc.triplet import localization_errors
+    from jaxloc.m2loc import localization_errors
 
     counts = {int(c): int(np.sum(scan.labels == c)) for c in np.unique(scan.labels)}
     record = {
@@ -339,8 +340,8 @@ def _format_record(record: dict) -> str:
 def run_localize_lidar(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
-    from jaxloc.triplet import save_triplet_map
-    from jaxloc.triplet._metrics import SUCCESS_RRE_DEG, SUCCESS_RTE_M
+    from jaxloc.io import save_triplet_map
+    from jaxloc.m2loc import SUCCESS_RRE_DEG, SUCCESS_RTE_M
 
     check_config_args(args)
     check_save_path(args.save_map)

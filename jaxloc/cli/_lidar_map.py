@@ -49,13 +49,8 @@ exit status: 0 on success, 2 on missing or malformed files or bad options (one-l
 def run_build_lidar_map(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
-    from jaxloc.triplet import (
-        MapBuildConfig,
-        build_lidar_maps,
-        load_lidar_sequence,
-        save_lidar_maps,
-        save_triplet_map,
-    )
+    from jaxloc.io import load_lidar_sequence, save_lidar_maps, save_triplet_map
+    from jaxloc.mapping import MapBuildConfig, build_lidar_maps
 
     if args.every < 1:
         raise InputError(f"--every must be >= 1, got {args.every}")

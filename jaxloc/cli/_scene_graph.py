@@ -69,25 +69,20 @@ def add_parser(commands) -> None:
 def run_build_scene_graph(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from jaxloc.datasets import reconstruction
-    from jaxloc.datasets.scene_builder import (
-        load_embedding_table,
-        onehot_classes,
-        scene_graph_from_reconstruction,
-    )
-    from jaxloc.scene import save_scene
+    from jaxloc.io import load_embedding_table, read_3rscan, read_generic, read_scannet, save_scene
+    from jaxloc.mapping import onehot_classes, scene_graph_from_reconstruction
 
     if args.target_vertices < 4:
         raise InputError(f"--target-vertices must be >= 4, got {args.target_vertices}")
     try:
         if args.format == "scannet":
-            recon = reconstruction.read_scannet(args.scan, args.label_table, args.label_column)
+            recon = read_scannet(args.scan, args.label_table, args.label_column)
         elif args.format == "3rscan":
-            recon = reconstruction.read_3rscan(args.scan)
+            recon = read_3rscan(args.scan)
         else:
             if args.objects is None:
                 raise InputError("--format generic needs --objects FILE")
-            recon = reconstruction.read_generic(args.scan, args.objects, args.instance_property)
+            recon = read_generic(args.scan, args.objects, args.instance_property)
         table = None
         if args.embeddings is not None:
             table = load_embedding_table(args.embeddings, args.embeddings_by)

@@ -1,0 +1,153 @@
+"""Described maps on disk: :func:`save_triplet_map` / :func:`load_triplet_map`.
+
+One compressed ``.npz`` holds every array of a :class:`TripletMap` (vertices, class positions, the
+descriptors of every scale, RSN cells) and its :class:`TripletConfig` as JSON text, with a format
+name and version. Loading never unpickles (``allow_pickle=False``) and validates everything before
+a map is built: format and version, the configuration (through the config classes' own checks),
+dtypes, shapes that agree with each other and the configuration, finite values, class positions in
+range, unit descriptors where valid and zeros elsewhere, unit normals, positive sigmas. Writes are
+atomic (temporary file, then rename).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+
+from jaxloc.io._atomic import write_npz_atomic
+from jaxloc.io._map_file import read_map_file
+from jaxloc.io.errors import MapFormatError
+from jaxloc.lsq import RobustLoss
+from jaxloc.m2loc import DescriptorConfig, TripletConfig, TripletMap, map_grid
+
+FORMAT_NAME = "jaxloc.TripletMap"
+FORMAT_VERSION = 1
+
+# name: (dtype, shape with -1 for "any"; N vertices, S scales, D dim, M RSN cells checked after)
+_ARRAYS = {
+    "points": (np.float32, (-1, 3)),
+    "classes": (np.int32, (-1,)),
+    "descriptors": (np.float32, (-1, -1, -1)),
+    "valid": (np.bool_, (-1, -1)),
+    "origin": (np.float32, (3,)),
+    "rsn_xy": (np.float32, (-1, 2)),
+    "rsn_normals": (np.float32, (-1, 3)),
+    "rsn_sigma": (np.float32, (-1,)),
+    "has_rsn": (np.bool_, ()),
+}
+
+_NESTED = {"descriptor": DescriptorConfig, "loss": RobustLoss}
+
+
+def _config_to_dict(module) -> dict:
+    out = {}
+    for field in dataclasses.fields(module):
+        value = getattr(module, field.name)
+        if field.name in _NESTED:
+            value = _config_to_dict(value)
+        elif isinstance(value, tuple):
+            value = list(value)
+        elif isinstance(value, np.ndarray | jnp.ndarray):
+            value = value.item()
+        out[field.name] = value
+    return out
+
+
+def _config_from_dict(cls, values: dict):
+    names = {field.name for field in dataclasses.fields(cls)}
+    unknown = set(values) - names
+    if unknown:
+        raise ValueError(f"unknown {cls.__name__} fields {sorted(unknown)}")
+    kwargs = {}
+    for name, value in values.items():
+        if name in _NESTED:
+            value = _config_from_dict(_NESTED[name], value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def save_triplet_map(triplet_map: TripletMap, path: str | os.PathLike) -> None:
+    """Write a described map (every array and its configuration) to one versioned ``.npz``,
+    atomically. :func:`load_triplet_map` gives back identical arrays."""
+    arrays = {name: np.asarray(getattr(triplet_map, name)) for name in _ARRAYS if name != "has_rsn"}
+    arrays["has_rsn"] = np.array(triplet_map.has_rsn)
+    arrays["format"] = np.array(FORMAT_NAME)
+    arrays["version"] = np.array(FORMAT_VERSION, np.int64)
+    arrays["config"] = np.array(json.dumps(_config_to_dict(triplet_map.config)))
+    write_npz_atomic(path, arrays)
+
+
+def _check_arrays(path: Path, content: dict[str, np.ndarray], config: TripletConfig) -> None:
+    for name, (dtype, shape) in _ARRAYS.items():
+        if name not in content:
+            raise MapFormatError(f"{path}: missing array '{name}'")
+        array = content[name]
+        if array.dtype != dtype:
+            raise MapFormatError(f"{path}: '{name}' has dtype {array.dtype}, expected {dtype}")
+        if array.ndim != len(shape) or any(
+            want not in (-1, got) for want, got in zip(shape, array.shape, strict=True)
+        ):
+            raise MapFormatError(f"{path}: '{name}' has shape {array.shape}")
+        if np.issubdtype(array.dtype, np.floating) and not np.all(np.isfinite(array)):
+            raise MapFormatError(f"{path}: '{name}' contains NaN or inf")
+    n = content["points"].shape[0]
+    scales, dim = config.descriptor.num_scales, config.descriptor.dim
+    m = content["rsn_xy"].shape[0]
+    descriptors, valid = content["descriptors"], content["valid"]
+    norms = np.linalg.norm(descriptors, axis=-1)
+    classes = content["classes"]
+    checks = [
+        (n >= 3, f"{n} vertices (at least 3 needed)"),
+        (config.top_k <= n, f"top_k={config.top_k} exceeds the {n} vertices"),
+        (classes.shape == (n,), "'classes' does not match 'points'"),
+        (
+            np.all((classes >= 0) & (classes < len(config.descriptor.classes))),
+            "class positions out of range",
+        ),
+        (descriptors.shape == (scales, n, dim), f"'descriptors' is not ({scales}, {n}, {dim})"),
+        (valid.shape == (scales, n), f"'valid' is not ({scales}, {n})"),
+        (
+            descriptors.shape != (scales, n, dim)
+            or valid.shape != (scales, n)
+            or (np.allclose(norms[valid], 1.0, atol=1e-3) and not np.any(norms[~valid])),
+            "descriptors are not unit vectors where valid and zero elsewhere",
+        ),
+        (m >= 1, "no RSN cell (a map without normals keeps one dummy cell)"),
+        (content["rsn_normals"].shape[0] == m, "'rsn_normals' does not match 'rsn_xy'"),
+        (content["rsn_sigma"].shape == (m,), "'rsn_sigma' does not match 'rsn_xy'"),
+        (
+            np.allclose(np.linalg.norm(content["rsn_normals"], axis=-1), 1.0, atol=1e-3),
+            "road normals are not unit vectors",
+        ),
+        (np.all(content["rsn_sigma"] > 0), "RSN sigmas must be > 0"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise MapFormatError(f"{path}: {message}")
+
+
+def load_triplet_map(path: str | os.PathLike) -> TripletMap:
+    """Load and validate a map written by :func:`save_triplet_map` (never unpickles).
+
+    Raises:
+        FileNotFoundError: no such file.
+        MapFormatError: a corrupt, truncated or foreign file, another format version, a bad
+            configuration, or arrays with wrong dtypes or shapes, NaN/inf or inconsistent values.
+    """
+    path = Path(path)
+    content = read_map_file(path, FORMAT_NAME, FORMAT_VERSION, "triplet map")
+    try:
+        config = _config_from_dict(TripletConfig, json.loads(str(content["config"])))
+    except (KeyError, TypeError, ValueError) as err:  # JSON, unknown fields, config checks
+        raise MapFormatError(f"{path}: bad configuration ({err})") from err
+    _check_arrays(path, content, config)
+    arrays = {name: jnp.asarray(content[name]) for name in _ARRAYS if name != "has_rsn"}
+    grid = map_grid(arrays["points"], arrays["classes"], config.verify_radius)
+    return TripletMap(**arrays, has_rsn=bool(content["has_rsn"]), config=config, grid=grid)

@@ -1,0 +1,114 @@
+"""M2Loc / TripletLoc: one-shot global LiDAR localization from semantic instance centroids.
+
+Pipeline: instances from labelled points (:func:`cluster_instances`) -> multi-scale triplet
+descriptors (:func:`describe_points`, :func:`describe_map`) -> per-class top-k matching
+(:func:`match_descriptors`) -> consistency graph (:func:`consistency_graph`) -> maximum clique
+(:func:`max_clique`) with M2Loc's dynamic enhancement (and, for small scans, verified clique
+hypotheses: :func:`best_verified_clique`) -> Kabsch + robust refinement with the
+road-surface-normal prior (:func:`register`). User entry points: :func:`build_map` and
+:func:`localize_scan` (one scan), :func:`localize_scans` (a batch over devices). TripletLoc is one
+configuration away (:func:`tripletloc_config`). Map files and the datasets' readers live in
+:mod:`jaxloc.io`; building instance maps from a labelled sequence in :mod:`jaxloc.mapping`.
+
+Modules (private; everything public is re-exported here): ``_clusters`` (instances),
+``_descriptors`` (triplet descriptors), ``_matching`` (matches, consistency graph), ``_clique``
+(maximum clique solvers), ``_hypotheses`` (verified clique hypotheses), ``_registration`` (pose),
+``_config`` / ``_map`` / ``_query`` / ``_localization`` / ``_batch`` (the pipeline),
+``_evaluation`` (errors and success rates), ``_classes`` and ``_road_normals`` (shared types).
+"""
+
+from jaxloc.m2loc._batch import localize_scans
+from jaxloc.m2loc._classes import GRAPH_CLASSES, POLE, TRAFFIC_SIGN, TRUNK
+from jaxloc.m2loc._clique import (
+    greedy_cliques,
+    max_clique,
+    max_clique_exact,
+    max_clique_with_info,
+    unpack_ranked,
+)
+from jaxloc.m2loc._clusters import (
+    ClusterConfig,
+    Instances,
+    cluster_instances,
+    euclidean_clusters,
+    fuse_instances,
+    voxel_downsample,
+)
+from jaxloc.m2loc._config import TripletConfig, m2loc_config, tripletloc_config
+from jaxloc.m2loc._descriptors import (
+    DescriptorConfig,
+    class_positions,
+    describe_map,
+    describe_points,
+    vertex_descriptor,
+)
+from jaxloc.m2loc._evaluation import (
+    SUCCESS_RRE_DEG,
+    SUCCESS_RTE_M,
+    localization_errors,
+    summarize_localization,
+)
+from jaxloc.m2loc._hypotheses import (
+    MapGrid,
+    best_verified_clique,
+    closed_form_poses,
+    grid_verified_fraction,
+    map_grid,
+)
+from jaxloc.m2loc._localization import LocalizationResult, localize_scan
+from jaxloc.m2loc._map import TripletMap, build_map
+from jaxloc.m2loc._matching import consistency_graph, match_descriptors
+from jaxloc.m2loc._query import QueryOutput, describe_query, register_query, verified_fraction
+from jaxloc.m2loc._registration import point_residuals, register, up_axis_prior, weighted_kabsch
+from jaxloc.m2loc._road_normals import RoadNormals
+
+__all__ = [
+    "GRAPH_CLASSES",
+    "POLE",
+    "SUCCESS_RRE_DEG",
+    "SUCCESS_RTE_M",
+    "TRAFFIC_SIGN",
+    "TRUNK",
+    "ClusterConfig",
+    "DescriptorConfig",
+    "Instances",
+    "LocalizationResult",
+    "MapGrid",
+    "QueryOutput",
+    "RoadNormals",
+    "TripletConfig",
+    "TripletMap",
+    "best_verified_clique",
+    "build_map",
+    "class_positions",
+    "closed_form_poses",
+    "cluster_instances",
+    "consistency_graph",
+    "describe_map",
+    "describe_points",
+    "describe_query",
+    "euclidean_clusters",
+    "fuse_instances",
+    "greedy_cliques",
+    "grid_verified_fraction",
+    "localization_errors",
+    "localize_scan",
+    "localize_scans",
+    "m2loc_config",
+    "map_grid",
+    "match_descriptors",
+    "max_clique",
+    "max_clique_exact",
+    "max_clique_with_info",
+    "point_residuals",
+    "register",
+    "register_query",
+    "summarize_localization",
+    "tripletloc_config",
+    "unpack_ranked",
+    "up_axis_prior",
+    "verified_fraction",
+    "vertex_descriptor",
+    "voxel_downsample",
+    "weighted_kabsch",
+]

@@ -1,0 +1,29 @@
+"""Map building: turning a user's recordings (read by :mod:`jaxloc.io`) into the methods' maps.
+
+* :mod:`~jaxloc.mapping.scene_graphs`: SG2Loc scene graphs from labelled reconstructions (one
+  coarse mesh per object, embeddings from a table or one-hot).
+* :mod:`~jaxloc.mapping.lidar_maps`: M2Loc instance and road-surface-normal maps from a labelled
+  LiDAR sequence (TripletLoc's recipe).
+
+Both sit above :mod:`jaxloc.io` and the two method packages: they read with the former and build
+the latter's types, so neither the readers nor the methods depend on each other.
+"""
+
+from jaxloc.mapping.lidar_maps import LidarMaps, MapBuildConfig, build_lidar_maps, fit_plane
+from jaxloc.mapping.scene_graphs import (
+    DEFAULT_TARGET_VERTICES,
+    decimate,
+    onehot_classes,
+    scene_graph_from_reconstruction,
+)
+
+__all__ = [
+    "DEFAULT_TARGET_VERTICES",
+    "LidarMaps",
+    "MapBuildConfig",
+    "build_lidar_maps",
+    "decimate",
+    "fit_plane",
+    "onehot_classes",
+    "scene_graph_from_reconstruction",
+]

@@ -1,0 +1,182 @@
+"""Nearest hits of rays against a scene's meshes, with differentiable hit distances.
+
+:func:`raycast` is the one entry point. An engine (:mod:`jaxloc.raycasting.engines`: the JAX BVH
+traversal of :mod:`jaxloc.raycasting.traversal`, Embree or Warp) only chooses each ray's triangle,
+on stop-gradient inputs; ``t``, the barycentric coordinates and the object id are then recomputed
+here from that triangle in JAX, so gradients flow to origins and directions (and so to poses), stay
+finite for grazing rays (guarded denominators), and do not depend on the engine.
+
+Distances ``t`` are metric: directions are normalised first, so ``t`` is the distance in metres from
+the origin along the unit direction. Rays with non-finite or zero directions, or non-finite
+origins, report a miss.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from jaxloc.raycasting.bvh import BVHScene
+from jaxloc.raycasting.engines import nearest_triangle, resolve_engine
+from jaxloc.raycasting.traversal import DEFAULT_CHUNK, nearest_leaf_triangles
+from jaxloc.raycasting.triangle import DET_EPS, moller_trumbore
+
+
+class RayHit(eqx.Module):
+    """Nearest hits of a batch of rays (leading shape ``...`` of the inputs).
+
+    Attributes:
+        t: (...,) float32 metric distance along the unit direction; +inf on a miss.
+        object_id: (...,) int32 hit object; -1 on a miss.
+        triangle_id: (...,) int32 hit triangle (index into ``scene.triangles``); -1 on a miss.
+        barycentric: (..., 3) float32 weights of the triangle's 3 corners; zeros on a miss.
+        hit: (...,) bool.
+    """
+
+    t: Array
+    object_id: Array
+    triangle_id: Array
+    barycentric: Array
+    hit: Array
+
+
+def _safe_normalize(v: Array) -> tuple[Array, Array]:
+    """Unit vectors (..., 3) and a validity mask; zero/non-finite vectors give (0, 0, 1), False."""
+    sq = jnp.sum(v * v, axis=-1, keepdims=True)
+    ok = (sq > 0) & jnp.isfinite(sq)
+    safe = jnp.where(ok, v, jnp.array([0.0, 0.0, 1.0], v.dtype))
+    unit = safe * jax.lax.rsqrt(jnp.sum(safe * safe, axis=-1, keepdims=True))
+    return unit, ok[..., 0]
+
+
+@jax.jit  # one compiled fusion, eager or inside a jit: the same float32 rounding either way
+def _differentiable_hit(o, d, tri, hit):
+    """Recompute (t, barycentric) of rays on their known triangles, differentiably (where ``hit``
+    is False: t = inf, barycentric 0). Coordinates are written out (lists of 3 arrays of any
+    shape ``...``), as in :func:`moller_trumbore`: on (R,) columns XLA:CPU runs this ~2x faster
+    than a vmap over (R, 3) rows.
+
+    Args:
+        o, d: ray origins and unit directions, 3 arrays each. tri: the triangles' 9 coordinates
+            (v0, v1, v2, x y z each). hit: (...) bool.
+
+    Returns:
+        ``t`` (...) and ``barycentric`` (..., 3). ``t`` uses the plane form
+        ``n . (v0 - o) / (n . d)`` with ``n = e1 x e2``, which keeps float32 errors ~30x smaller
+        than Moller-Trumbore's triple product for small, distant triangles; the barycentric
+        coordinates come from Moller-Trumbore (clipped to the triangle).
+    """
+    o = [jnp.where(hit, c, 0.0) for c in o]
+    d = [jnp.where(hit, c, fill) for c, fill in zip(d, (0.0, 0.0, 1.0), strict=True)]
+    v0 = tri[0:3]
+    e1 = [tri[3 + a] - v0[a] for a in range(3)]
+    e2 = [tri[6 + a] - v0[a] for a in range(3)]
+    _, u, v, _ = moller_trumbore(o, d, v0, e1, e2)
+    normal = [
+        e1[1] * e2[2] - e1[2] * e2[1],
+        e1[2] * e2[0] - e1[0] * e2[2],
+        e1[0] * e2[1] - e1[1] * e2[0],
+    ]
+    facing = sum(normal[a] * d[a] for a in range(3))
+    facing = jnp.where(jnp.abs(facing) > DET_EPS, facing, 1.0)
+    t = jnp.where(hit, sum(normal[a] * (v0[a] - o[a]) for a in range(3)) / facing, jnp.inf)
+    u, v = jnp.clip(u, 0.0, 1.0), jnp.clip(v, 0.0, 1.0)
+    bary = jnp.where(hit[..., None], jnp.stack([1.0 - u - v, u, v], -1), 0.0)
+    return t, bary
+
+
+def hit_triangles(
+    scene: BVHScene,
+    origins: Array,
+    directions: Array,
+    valid: Array,
+    engine: str,
+    packet_size: int = 1,
+    chunk_size: int = DEFAULT_CHUNK,
+) -> Array:
+    """The engine's hit search alone: nearest triangle (R,) int32 of each ray, -1 on a miss.
+
+    ``origins`` (R, 3) finite, ``directions`` (R, 3) finite unit vectors (both without gradient);
+    rays where ``valid`` (R,) is False miss. ``engine`` is resolved ("jax", "embree" or "warp").
+    A padding triangle is never reported.
+    """
+    num = origins.shape[0]
+    if num == 0:
+        return jnp.zeros((0,), jnp.int32)
+    if engine != "jax":
+        triangle = nearest_triangle(engine, scene.triangles, origins, directions, valid)
+        real = scene.triangle_object[jnp.clip(triangle, 0, scene.triangles.shape[0] - 1)] >= 0
+        return jnp.where(valid & (triangle >= 0) & real, triangle, -1)
+    return nearest_leaf_triangles(scene, origins, directions, valid, packet_size, chunk_size)
+
+
+def raycast(
+    scene: BVHScene,
+    origins: Array,
+    directions: Array,
+    *,
+    engine: str = "auto",
+    packet_size: int = 1,
+    chunk_size: int = DEFAULT_CHUNK,
+) -> RayHit:
+    """Nearest hits of rays against the scene's meshes.
+
+    Args:
+        scene: the map (a :class:`~jaxloc.SceneGraph`, or any :class:`BVHScene`).
+        origins: (..., 3) ray origins, world frame, metres.
+        directions: (..., 3) ray directions, world frame, any non-zero length (normalised here).
+        engine: which engine finds the hit triangle (static): ``"jax"`` (the BVH traversal of
+            :mod:`jaxloc.raycasting.traversal`), ``"embree"``, ``"warp"`` or ``"auto"`` (Embree
+            on a CPU backend, Warp on a GPU backend where installed, else JAX); see
+            :mod:`jaxloc.raycasting.engines`. ``t``, the barycentric coordinates, the object and
+            the gradients are computed by the same JAX code whatever the engine.
+        packet_size: consecutive rays that traverse the tree together (static, ``"jax"`` engine).
+            Exact for any value; packets of 8 to 16 pay off when consecutive rays are coherent,
+            e.g. a 2 x 4 or 4 x 4 tile of one camera's rays, and 1 suits unrelated rays.
+        chunk_size: rays in flight in the traversal loop (static, ``"jax"`` engine):
+            ``chunk_size // packet_size`` lanes. Both are speed knobs only.
+
+    Returns:
+        :class:`RayHit` with leading shape ``...``; ``t`` is in metres along the unit direction.
+
+    Raises:
+        ValueError: bad shapes or an unknown engine.
+        ImportError: an engine asked for by name whose package is not installed.
+    """
+    engine = resolve_engine(engine)
+    origins = jnp.asarray(origins, jnp.float32)
+    directions = jnp.asarray(directions, jnp.float32)
+    if origins.shape[-1:] != (3,) or directions.shape[-1:] != (3,):
+        raise ValueError(
+            "origins and directions must have shape (..., 3), "
+            f"got {origins.shape} and {directions.shape}"
+        )
+    shape = jnp.broadcast_shapes(origins.shape, directions.shape)
+    o = jnp.broadcast_to(origins, shape).reshape(-1, 3)
+    d, ok = _safe_normalize(jnp.broadcast_to(directions, shape).reshape(-1, 3))
+    ok &= jnp.all(jnp.isfinite(o), axis=1)
+    o_search = jax.lax.stop_gradient(jnp.where(ok[:, None], o, 0.0))
+    triangle = hit_triangles(
+        scene, o_search, jax.lax.stop_gradient(d), ok, engine, packet_size, chunk_size
+    )
+    hit = triangle >= 0
+    # Ids are in [-1, T), so the clamped gather is always in bounds.
+    rows = scene.triangles.reshape(-1, 9)
+    corners = rows.at[jnp.maximum(triangle, 0)].get(mode="promise_in_bounds")  # (R, 9)
+    t, bary = _differentiable_hit(
+        [o[:, a] for a in range(3)],
+        [d[:, a] for a in range(3)],
+        [corners[:, k] for k in range(9)],
+        hit,
+    )
+    object_id = jnp.where(hit, scene.triangle_object[jnp.maximum(triangle, 0)], -1)
+    lead = shape[:-1]
+    return RayHit(
+        t=t.reshape(lead),
+        object_id=object_id.reshape(lead),
+        triangle_id=triangle.reshape(lead),
+        barycentric=bary.reshape(lead + (3,)),
+        hit=hit.reshape(lead),
+    )

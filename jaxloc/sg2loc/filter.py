@@ -1,0 +1,347 @@
+"""One jitted SG2Loc filter step, and a whole pass over a sequence with ``lax.scan``.
+
+``step(key, state, frame, scene, config) -> (state, info)`` composes, for every particle of a
+padded :class:`~jaxloc.sg2loc.particles.ParticleState`: prediction through the ego-motion (eq. 1),
+rendering of the scene graph on the configured ray grid, the semantic / depth / SSIM scores and
+the combined likelihood (eq. 2) in log space, the Bayes update, the estimates (MLE, weighted mean),
+KLD-sampling resampling into the padded buffer and optional random-particle injection.
+
+Everything that varies per frame is a traced :class:`Frame`; the map, the particle capacity, the
+ray grid and the score variants fix the compiled shapes, so a new frame, a new map of the same
+capacity or a new value of sigma / lambda / epsilon never recompiles.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.sharding import Mesh, PartitionSpec
+
+from jaxloc.camera import Camera, RayGrid
+from jaxloc.raycasting.engines import check_engine_name
+from jaxloc.scene import SceneGraph
+from jaxloc.sg2loc._convert import as_float32, as_int32
+from jaxloc.sg2loc.particles import (
+    PAPER_HEIGHTS,
+    ParticleState,
+    inject_uniform,
+    mle,
+    predict,
+    update_weights,
+    weighted_mean,
+)
+from jaxloc.sg2loc.rendering import render_batch
+from jaxloc.sg2loc.resampling import KLDConfig, kld_resample
+from jaxloc.sg2loc.scores import ObservationConfig, Scores, match_patches, particle_log_likelihood
+from jaxloc.sg2loc.sequence import Sequence
+
+
+class Region(eqx.Module):
+    """A floor region for particle initialisation and injection (world frame, metres).
+
+    Attributes:
+        lo, hi: (2,) float32 x-y corners.
+        floor_z: float32 floor height; camera heights are measured from it.
+    """
+
+    lo: Array = eqx.field(converter=as_float32)
+    hi: Array = eqx.field(converter=as_float32)
+    floor_z: Array = eqx.field(converter=as_float32)
+
+    @staticmethod
+    def of_scene(scene: SceneGraph) -> Region:
+        """The map's floor bounds: the x-y extent of its meshes, floor at their lowest point."""
+        bounds = np.asarray(scene.bounds)
+        return Region(bounds[0, :2], bounds[1, :2], bounds[0, 2])
+
+
+#: Rays rendered at once by default (``StepConfig.particle_chunk``): 2^20 rays keep the step's
+#: working set near 1 GiB at any stride (benchmarks/results/filter_profile_cpu.md).
+CHUNK_RAYS = 2**20
+
+
+def check_particle_chunk(chunk: int | None) -> None:
+    """Raise a ValueError unless ``chunk`` is a positive int or None (for configs)."""
+    if chunk is not None and (not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"particle_chunk must be a positive int or None, got {chunk!r}")
+
+
+class StepConfig(eqx.Module):
+    """Everything one filter step needs besides the state, the frame and the map.
+
+    Attributes:
+        camera: the query camera.
+        grid: the ray grid of this pass (a stride grid or a patch grid).
+        observation: score variants and likelihood parameters (eq. 2).
+        kld: KLD-sampling parameters.
+        region: where injected random particles go.
+        sigma_trans, sigma_rot: motion-model noise (metres, radians), traced.
+        inject_count: particles replaced by random ones on injection frames (traced; 0 = off).
+        inject_every: inject on frames whose index is a positive multiple of this (static).
+        heights: (H,) float32 camera heights above ``region.floor_z`` (metres) of the particles
+            spread over the region and of injected ones (default the paper's 1.5-1.8 m).
+        engine: nearest-hit engine of the rendering (static; see :func:`jaxloc.raycast`).
+        particle_chunk: particles rendered and scored together (static). Only the chunks that
+            hold active particles are rendered (a loop over them), so the step's time follows the
+            active count and its peak memory ``particle_chunk`` x rays per particle. ``None``
+            picks ``CHUNK_RAYS // rays per particle`` (at least 1); a value >= the particle
+            capacity renders every slot at once (no loop).
+        mesh: a 1-D device mesh the particle buffer is split over (static; set by
+            :mod:`jaxloc.sharding` and ``localize(..., mesh=)``). Each device then renders and
+            scores its own shard (``jax.shard_map``), calling the engine on its own rays, with its
+            own chunk loop; the weights and resampling stay global. ``None``: one device.
+    """
+
+    camera: Camera
+    grid: RayGrid
+    observation: ObservationConfig
+    kld: KLDConfig
+    region: Region
+    sigma_trans: Array = eqx.field(default=0.05, converter=as_float32)
+    sigma_rot: Array = eqx.field(default=0.05, converter=as_float32)
+    inject_count: Array = eqx.field(default=0, converter=as_int32)
+    inject_every: int = eqx.field(static=True, default=5)
+    heights: Array = eqx.field(default=PAPER_HEIGHTS, converter=as_float32)
+    engine: str = eqx.field(static=True, default="auto")
+    particle_chunk: int | None = eqx.field(static=True, default=None)
+    mesh: Mesh | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self) -> None:
+        check_engine_name(self.engine)
+        check_particle_chunk(self.particle_chunk)
+
+    def chunk_size(self, capacity: int) -> int:
+        """Particles per chunk for a buffer of ``capacity`` slots (static)."""
+        if self.particle_chunk is not None:
+            return min(self.particle_chunk, capacity)
+        return max(1, min(CHUNK_RAYS // self.grid.uv.shape[0], capacity))
+
+
+class Frame(eqx.Module):
+    """One frame's observations, sampled on the pass's ray grid (R rays, P patches, d dims).
+
+    Attributes:
+        index: int32 frame number in the sequence.
+        motion: (4,) float32 ego-motion from the previous frame (zeros for the first frame).
+        patch_embeddings: (P, d) float32.
+        depth: (R,) float32 sensor depth at the rays' pixels (0 = invalid).
+        rgb: (h, w, 3) float32 colour at the rays' pixels, the ray image's shape.
+        tilt: (2,) float32 (pitch, roll).
+    """
+
+    index: Array
+    motion: Array
+    patch_embeddings: Array
+    depth: Array
+    rgb: Array
+    tilt: Array
+
+
+class StepInfo(NamedTuple):
+    """Diagnostics of one step (scalars unless noted).
+
+    Attributes:
+        mle: (4,) the maximum-likelihood particle after the update.
+        mean: (4,) the weighted mean pose after the update.
+        num_particles: int32 particles after KLD resampling.
+        num_bins: int32 occupied KLD bins.
+        degenerate: bool, every likelihood underflowed (weights reset to uniform).
+        motion_valid: bool, the frame's ego-motion was finite. A non-finite one is replaced by
+            zero motion (the particles move by the motion noise only), so it cannot poison them.
+        semantic, depth, color, log_likelihood: the MLE particle's scores.
+        particles: (N, 4) particle poses after the update (before resampling).
+        particle_weights: (N,) their normalised weights (0 for inactive slots).
+    """
+
+    mle: Array
+    mean: Array
+    num_particles: Array
+    num_bins: Array
+    degenerate: Array
+    motion_valid: Array
+    semantic: Array
+    depth: Array
+    color: Array
+    log_likelihood: Array
+    particles: Array
+    particle_weights: Array
+
+
+def frames_on_grid(sequence: Sequence, grid: RayGrid) -> Frame:
+    """All frames of a sequence sampled on a ray grid, stacked with a leading T axis (host side)."""
+    num_frames = sequence.num_frames
+    camera = sequence.camera
+    uv = np.asarray(grid.uv)
+    cols = np.clip(np.rint(uv[:, 0]).astype(int), 0, camera.width - 1)
+    rows = np.clip(np.rint(uv[:, 1]).astype(int), 0, camera.height - 1)
+    h, w = grid.shape
+    if sequence.depth is not None:
+        depth = sequence.depth[:, rows, cols]
+    else:
+        depth = np.zeros((num_frames, uv.shape[0]), np.float32)
+    if sequence.rgb is not None:
+        rgb = sequence.rgb[:, rows, cols].reshape(num_frames, h, w, 3)
+    else:
+        rgb = np.zeros((num_frames, h, w, 3), np.float32)
+    rows_p, cols_p = sequence.patch_shape
+    if (rows_p, cols_p) != (grid.rows, grid.cols):
+        raise ValueError(
+            f"the sequence has a {rows_p}x{cols_p} patch grid but the ray grid uses "
+            f"{grid.rows}x{grid.cols} patches"
+        )
+    motion = np.concatenate([np.zeros((1, 4), np.float32), sequence.ego_motion], axis=0)
+    return Frame(
+        index=jnp.arange(num_frames, dtype=jnp.int32),
+        motion=jnp.asarray(motion),
+        patch_embeddings=jnp.asarray(
+            sequence.patch_embeddings.reshape(num_frames, rows_p * cols_p, -1)
+        ),
+        depth=jnp.asarray(depth),
+        rgb=jnp.asarray(rgb),
+        tilt=jnp.asarray(sequence.tilt),
+    )
+
+
+def _score_poses(poses: Array, frame: Frame, scene: SceneGraph, config: StepConfig) -> Scores:
+    """Render ``poses`` (M, 4) (NaN rows: skipped, their rays miss) and score them: (M,) each."""
+    views = render_batch(scene, poses, config.camera, config.grid, frame.tilt, engine=config.engine)
+    match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
+    h, w = config.grid.shape
+    return jax.vmap(
+        lambda obj, depth, color: particle_log_likelihood(
+            config.observation,
+            match,
+            obj,
+            depth,
+            frame.depth,
+            color.reshape(h, w, 3),
+            frame.rgb,
+        )
+    )(views.patch_object, views.depth, views.color)
+
+
+def score_active(
+    state: ParticleState, frame: Frame, scene: SceneGraph, config: StepConfig
+) -> Scores:
+    """Scores (N,) of the active particles of ``state`` against ``frame``; the scores of inactive
+    slots are meaningless (the caller masks them).
+
+    The active particles are gathered to the front and rendered ``config.chunk_size(N)`` at a
+    time in a ``lax.while_loop`` that stops after the last chunk holding one (a chunk size >= N
+    renders every slot in one call instead). With ``config.mesh`` every device does this for its
+    own shard of the buffer.
+    """
+    if config.mesh is None:
+        return _score_shard(state.poses, state.active, frame, scene, config)
+    split, whole = PartitionSpec(config.mesh.axis_names[0]), PartitionSpec()
+    per_device = jax.shard_map(
+        _score_shard,
+        mesh=config.mesh,
+        in_specs=(split, split, whole, whole, whole),
+        out_specs=split,
+        check_vma=False,
+    )
+    return per_device(state.poses, state.active, frame, scene, config)
+
+
+def _score_shard(
+    poses: Array, active: Array, frame: Frame, scene: SceneGraph, config: StepConfig
+) -> Scores:
+    """:func:`score_active` of particles ``poses`` (M, 4) with mask ``active`` (M,)."""
+    capacity = active.shape[0]
+    chunk = config.chunk_size(capacity)
+    if chunk >= capacity:
+        # Inactive slots cast invalid (NaN) rays, which every engine retires at once.
+        return _score_poses(jnp.where(active[:, None], poses, jnp.nan), frame, scene, config)
+    num_chunks = -(-capacity // chunk)
+    order = jnp.argsort(~active, stable=True)  # active slots first, in slot order
+    order = jnp.pad(order, (0, num_chunks * chunk - capacity))
+    num_active = jnp.sum(active)
+    scored = jnp.zeros((num_chunks * chunk,), jnp.float32)
+    init = (jnp.int32(0), Scores(scored, scored, scored, scored))
+
+    def body(carry):
+        i, scores = carry
+        rank = i * chunk + jnp.arange(chunk)
+        slots = jax.lax.dynamic_slice(order, (i * chunk,), (chunk,))
+        chosen = jnp.where((rank < num_active)[:, None], poses[slots], jnp.nan)
+        found = _score_poses(chosen, frame, scene, config)
+        scores = jax.tree.map(
+            lambda all_, part: jax.lax.dynamic_update_slice(all_, part, (i * chunk,)),
+            scores,
+            found,
+        )
+        return i + 1, scores
+
+    _, scores = jax.lax.while_loop(lambda c: c[0] * chunk < num_active, body, init)
+    # Back to slot order (slots past the active ones keep the zeros of ``init``).
+    return jax.tree.map(
+        lambda a: jnp.zeros((capacity,), a.dtype).at[order[:capacity]].set(a[:capacity]), scores
+    )
+
+
+def step(
+    key: Array, state: ParticleState, frame: Frame, scene: SceneGraph, config: StepConfig
+) -> tuple[ParticleState, StepInfo]:
+    """One SG2Loc filter step: predict, render, score, weight, estimate, resample, inject.
+
+    The first frame (``frame.index == 0``) is not moved: its particles are the initial set. A
+    non-finite ego-motion counts as zero motion and is flagged in ``info.motion_valid``.
+    """
+    key_motion, key_resample, key_inject = jax.random.split(key, 3)
+    motion_valid = jnp.all(jnp.isfinite(frame.motion))
+    motion = jnp.where(motion_valid, frame.motion, 0.0)
+    moved = predict(key_motion, state, motion, config.sigma_trans, config.sigma_rot)
+    state = jax.tree.map(lambda a, b: jnp.where(frame.index > 0, a, b), moved, state)
+
+    scores = score_active(state, frame, scene, config)
+    log_likelihood = jnp.where(state.active, scores.log_likelihood, -jnp.inf)
+    state, degenerate = update_weights(state, log_likelihood)
+    best_pose, best = mle(state)
+    mean_pose = weighted_mean(state)
+
+    weighted = state
+    state, kld_info = kld_resample(key_resample, state, config.kld)
+    inject_now = (frame.index > 0) & (frame.index % config.inject_every == 0)
+    count = jnp.where(inject_now, config.inject_count, 0)
+    region = config.region
+    state = inject_uniform(
+        key_inject, state, count, region.lo, region.hi, region.floor_z, config.heights
+    )
+    info = StepInfo(
+        mle=best_pose,
+        mean=mean_pose,
+        num_particles=kld_info.num_particles,
+        num_bins=kld_info.num_bins,
+        degenerate=degenerate,
+        motion_valid=motion_valid,
+        semantic=scores.semantic[best],
+        depth=scores.depth[best],
+        color=scores.color[best],
+        log_likelihood=scores.log_likelihood[best],
+        particles=weighted.poses,
+        particle_weights=jnp.where(weighted.active, jnp.exp(weighted.log_weights), 0.0),
+    )
+    return state, info
+
+
+def run_pass(
+    key: Array, state: ParticleState, frames: Frame, scene: SceneGraph, config: StepConfig
+) -> tuple[ParticleState, StepInfo]:
+    """Filter a whole sequence (``frames`` stacked on a leading T axis) with ``lax.scan``.
+
+    Returns the final state and the per-frame :class:`StepInfo` stacked on a leading T axis.
+    """
+    num_frames = frames.index.shape[0]
+    keys = jax.random.split(key, num_frames)
+
+    def body(carry, inputs):
+        frame_key, frame = inputs
+        return step(frame_key, carry, frame, scene, config)
+
+    return jax.lax.scan(body, state, (keys, frames))

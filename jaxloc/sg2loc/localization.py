@@ -1,0 +1,279 @@
+"""SG2Loc: sequential localization of a camera in a scene graph, coarse-to-fine (paper section 3.5).
+
+:func:`localize` runs the particle filter over the whole sequence once per round. Round 0 spreads
+particles over the map's floor (or a given region) and casts every ``strides[0]``-th pixel; each
+later round carries the previous round's last-frame MLE back to the first frame through the
+ego-motion, re-initialises the particles in a box around it (half-widths ``box_half_widths``) and
+casts a denser ray grid. The paper's defaults are strides 20, 8, 4 and boxes of 1.6^3 then 0.8^3 m.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.sharding import Mesh
+from tqdm.auto import tqdm
+
+from jaxloc.camera import stride_grid
+from jaxloc.geometry import uncompose_yaw
+from jaxloc.raycasting.engines import check_engine_name
+from jaxloc.scene import SceneGraph
+from jaxloc.sg2loc._convert import as_float32
+from jaxloc.sg2loc.filter import (
+    Region,
+    StepConfig,
+    StepInfo,
+    check_particle_chunk,
+    frames_on_grid,
+    run_pass,
+    step,
+)
+from jaxloc.sg2loc.particles import DEFAULT_BOX_YAW_HALF_RANGE, PAPER_HEIGHTS, init_box, init_region
+from jaxloc.sg2loc.resampling import KLDConfig
+from jaxloc.sg2loc.scores import ObservationConfig
+from jaxloc.sg2loc.sequence import Sequence
+from jaxloc.sharding import check_divisible, pin_split
+
+
+class SG2LocConfig(eqx.Module):
+    """Settings of :func:`localize`. Sizes and schedules are static; weights are traced.
+
+    Attributes:
+        capacity: particle buffer size (static); KLD-sampling chooses how many are active.
+        strides: pixel stride of each round's ray grid (static; paper 20, 8, 4).
+        box_half_widths: half-width (metres) of the re-initialisation box of rounds 1, 2, ...
+            (static; paper 0.8 and 0.4, i.e. 1.6^3 and 0.8^3 m boxes).
+        yaw_half_range: yaw half-range (radians) of the re-initialisation boxes.
+        observation: score variants and likelihood parameters.
+        kld: KLD-sampling parameters.
+        sigma_trans, sigma_rot: motion noise (metres, radians; paper 0.05 and 0.05).
+        inject_count, inject_every: random-particle injection (reference: 2000 every 5th frame;
+            default off).
+        region: initialisation region (default: the map's floor bounds).
+        heights: camera heights above the region's floor (metres) of round 0's particles and of
+            injected ones (static; default the paper's 1.5, 1.6, 1.7, 1.8 m). Set them near the
+            query camera's real height (e.g. 1.2-1.5 m for a hand-held ScanNet camera).
+        engine: nearest-hit engine of the rendering (static; "auto", "jax", "embree" or "warp",
+            see :func:`jaxloc.raycast`).
+        particle_chunk: particles rendered together (static; ``StepConfig.particle_chunk``:
+            None sizes chunks to ``jaxloc.sg2loc.filter.CHUNK_RAYS`` rays).
+    """
+
+    capacity: int = eqx.field(static=True, default=2500)
+    strides: tuple[int, ...] = eqx.field(static=True, default=(20, 8, 4))
+    box_half_widths: tuple[float, ...] = eqx.field(static=True, default=(0.8, 0.4))
+    yaw_half_range: Array = eqx.field(default=DEFAULT_BOX_YAW_HALF_RANGE, converter=as_float32)
+    observation: ObservationConfig = ObservationConfig()
+    kld: KLDConfig = KLDConfig()
+    sigma_trans: Array = eqx.field(default=0.05, converter=as_float32)
+    sigma_rot: Array = eqx.field(default=0.05, converter=as_float32)
+    inject_count: int = 0
+    inject_every: int = eqx.field(static=True, default=5)
+    region: Region | None = None
+    heights: tuple[float, ...] = eqx.field(
+        static=True, default=PAPER_HEIGHTS, converter=lambda h: tuple(float(x) for x in h)
+    )
+    engine: str = eqx.field(static=True, default="auto")
+    particle_chunk: int | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        check_engine_name(self.engine)
+        check_particle_chunk(self.particle_chunk)
+        if not isinstance(self.capacity, int) or self.capacity < 1:
+            raise ValueError(f"capacity must be a positive int, got {self.capacity!r}")
+        if len(self.strides) < 1 or any(int(s) < 1 for s in self.strides):
+            raise ValueError(f"strides must be positive ints, got {self.strides}")
+        if len(self.box_half_widths) < len(self.strides) - 1:
+            raise ValueError(
+                f"{len(self.strides)} rounds need {len(self.strides) - 1} box_half_widths, "
+                f"got {self.box_half_widths}"
+            )
+        if any(not h > 0 for h in self.box_half_widths):
+            raise ValueError(f"box_half_widths must be positive, got {self.box_half_widths}")
+        if len(self.heights) < 1 or not all(np.isfinite(h) and h >= 0 for h in self.heights):
+            raise ValueError(
+                f"heights must be a non-empty tuple of finite heights >= 0 m, got {self.heights}"
+            )
+
+
+class SG2LocResult(NamedTuple):
+    """Output of :func:`localize` (T frames, R rounds, N particle capacity).
+
+    Attributes:
+        poses: (T, 4) the final round's MLE at every frame, (x, y, z, yaw).
+        round_mle: (R, T, 4) every round's per-frame MLE.
+        round_start: (R, 4) the centre each round was initialised around (round 0: NaN).
+        num_particles: (R, T) int32 particles after KLD resampling.
+        info: the final round's per-frame :class:`~jaxloc.sg2loc.filter.StepInfo` (scores, flags).
+        particles: (R, T, N, 4) particle poses after each frame's update (before resampling).
+        particle_weights: (R, T, N) their normalised weights (0 for inactive slots).
+        used_depth, used_color: whether the depth / colour scores were used.
+    """
+
+    poses: Array
+    round_mle: Array
+    round_start: Array
+    num_particles: Array
+    info: StepInfo
+    particles: Array
+    particle_weights: Array
+    used_depth: bool
+    used_color: bool
+
+
+def carry_back(pose: Array, ego_motion: Array) -> Array:
+    """Carry the last frame's pose (4,) back to the first frame through ``ego_motion`` (T-1, 4)."""
+
+    def back(current, motion):
+        return uncompose_yaw(current, motion), None
+
+    first, _ = jax.lax.scan(back, pose, ego_motion, reverse=True)
+    return first
+
+
+def _initial_state(key, init_args, step_config: StepConfig, capacity: int, mesh: Mesh | None):
+    if init_args is None:
+        region = step_config.region
+        state = init_region(
+            key, capacity, region.lo, region.hi, region.floor_z, heights=step_config.heights
+        )
+    else:
+        centre, half_width, yaw_half_range = init_args
+        state = init_box(key, capacity, centre, jnp.full((3,), half_width), yaw_half_range)
+    return state if mesh is None else pin_split(state, mesh)
+
+
+@eqx.filter_jit
+def _round(key, init_args, frames, scene, step_config, capacity: int, mesh: Mesh | None):
+    key_init, key_run = jax.random.split(key)
+    state = _initial_state(key_init, init_args, step_config, capacity, mesh)
+    return run_pass(key_run, state, frames, scene, step_config)
+
+
+_jit_initial_state = eqx.filter_jit(_initial_state)
+
+
+@eqx.filter_jit
+def _jit_step(key, state, frame, scene, step_config, mesh: Mesh | None):
+    state, info = step(key, state, frame, scene, step_config)
+    return (state if mesh is None else pin_split(state, mesh)), info
+
+
+def _round_with_progress(key, init_args, frames, scene, step_config, capacity, mesh, bar):
+    """The same computation as :func:`_round`, one jitted step per frame, updating ``bar``."""
+    key_init, key_run = jax.random.split(key)
+    state = _jit_initial_state(key_init, init_args, step_config, capacity, mesh)
+    num_frames = frames.index.shape[0]
+    infos = []
+    for frame_key, t in zip(jax.random.split(key_run, num_frames), range(num_frames), strict=True):
+        frame = jax.tree.map(lambda a, t=t: a[t], frames)
+        state, info = _jit_step(frame_key, state, frame, scene, step_config, mesh)
+        infos.append(info)
+        bar.update(1)
+    return state, jax.tree.map(lambda *xs: jnp.stack(xs), *infos)
+
+
+def localize(
+    key: Array,
+    scene: SceneGraph,
+    sequence: Sequence,
+    config: SG2LocConfig | None = None,
+    *,
+    progress: bool = False,
+    mesh: Mesh | None = None,
+) -> SG2LocResult:
+    """Localize every frame of ``sequence`` in ``scene`` with the coarse-to-fine particle filter.
+
+    Depth and colour scores are used when the sequence carries depth / RGB and the configuration
+    enables them; a sequence without depth (or RGB) runs without that score.
+
+    Args:
+        key: PRNG key; the same key and inputs give the same result.
+        scene: the map.
+        sequence: the query (its patch grid fixes the semantic patches).
+        config: :class:`SG2LocConfig` (paper defaults).
+        progress: show a progress bar over rounds x frames (runs one jitted step per frame
+            instead of one ``lax.scan`` per round; same result).
+        mesh: a 1-D device mesh (:func:`jaxloc.sharding.device_mesh`) to split the particle
+            buffer over; ``config.capacity`` must be a multiple of its device count. Same keys,
+            same result as one device up to the float32 reduction order (see
+            :mod:`jaxloc.sharding`).
+
+    Raises:
+        ValueError: the capacity does not split evenly over ``mesh``.
+    """
+    config = SG2LocConfig() if config is None else config
+    if not isinstance(scene, SceneGraph):
+        raise TypeError(f"scene must be a jaxloc.SceneGraph, got {type(scene).__name__}")
+    if not isinstance(sequence, Sequence):
+        raise TypeError(f"sequence must be a jaxloc.Sequence, got {type(sequence).__name__}")
+    d_seq, d_map = sequence.patch_embeddings.shape[-1], scene.embeddings.shape[1]
+    if d_seq != d_map:
+        raise ValueError(f"patch embeddings have {d_seq} dims but the map's objects have {d_map}")
+    if mesh is not None:
+        check_divisible(config.capacity, mesh, "SG2LocConfig.capacity")
+    observation = config.observation
+    used_depth = observation.use_depth and sequence.depth is not None
+    used_color = observation.use_color and sequence.rgb is not None
+    observation = dataclasses.replace(observation, use_depth=used_depth, use_color=used_color)
+    region = Region.of_scene(scene) if config.region is None else config.region
+    rows, cols = sequence.patch_shape
+    keys = jax.random.split(key, len(config.strides))
+    centre = jnp.full((4,), jnp.nan, jnp.float32)
+    starts, round_mle, counts, particles, weights = [], [], [], [], []
+    info = None
+    total = len(config.strides) * sequence.num_frames
+    bar = tqdm(total=total, unit="frame", disable=False) if progress else None
+    for r, stride in enumerate(config.strides):
+        grid = stride_grid(sequence.camera, stride, rows, cols)
+        step_config = StepConfig(
+            camera=sequence.camera,
+            grid=grid,
+            observation=observation,
+            kld=config.kld,
+            region=region,
+            sigma_trans=config.sigma_trans,
+            sigma_rot=config.sigma_rot,
+            inject_count=config.inject_count,
+            inject_every=config.inject_every,
+            heights=config.heights,
+            engine=config.engine,
+            particle_chunk=config.particle_chunk,
+            mesh=mesh,
+        )
+        init_args = (
+            None if r == 0 else (centre, config.box_half_widths[r - 1], config.yaw_half_range)
+        )
+        frames = frames_on_grid(sequence, grid)
+        if bar is None:
+            _, info = _round(keys[r], init_args, frames, scene, step_config, config.capacity, mesh)
+        else:
+            bar.set_description(f"round {r + 1}/{len(config.strides)} (stride {stride})")
+            _, info = _round_with_progress(
+                keys[r], init_args, frames, scene, step_config, config.capacity, mesh, bar
+            )
+        starts.append(centre)
+        round_mle.append(info.mle)
+        counts.append(info.num_particles)
+        particles.append(info.particles)
+        weights.append(info.particle_weights)
+        centre = carry_back(info.mle[-1], jnp.asarray(sequence.ego_motion))
+    if bar is not None:
+        bar.close()
+    return SG2LocResult(
+        poses=info.mle,
+        round_mle=jnp.stack(round_mle),
+        round_start=jnp.stack(starts),
+        num_particles=jnp.stack(counts),
+        info=info,
+        particles=jnp.stack(particles),
+        particle_weights=jnp.stack(weights),
+        used_depth=used_depth,
+        used_color=used_color,
+    )

@@ -1,0 +1,166 @@
+"""Render what a camera at a 4-DoF pose sees: per-ray object, depth and colour, per-patch majority.
+
+:func:`render` handles one pose (vmap it for a batch); :func:`render_batch` renders many poses in
+one raycast, which is faster because the traversal's chunks then span particles. Both give the same
+values.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from jaxloc.camera import Camera, RayGrid
+from jaxloc.geometry import rotation_world_cam
+from jaxloc.raycasting import RayHit, raycast
+from jaxloc.scene import SceneGraph
+
+#: Rays of one camera traverse the BVH in packets of this many neighbouring rays (half a 4 x 4
+#: tile: 2 rows x 4 columns). 8 beat 4 and 16 on the benchmark room for both the patch and the
+#: stride-20 grid (benchmarks/results/raycast_cpu.md).
+PACKET_SIZE = 8
+
+
+class Render(eqx.Module):
+    """One view rendered on a :class:`~jaxloc.camera.RayGrid` of R rays and P patches.
+
+    Attributes:
+        object_id: (R,) int32 object hit by each ray, -1 on a miss.
+        depth: (R,) float32 z-depth along the optical axis in metres (as a depth sensor reports
+            it); +inf on a miss.
+        t: (R,) float32 range along the ray in metres; +inf on a miss.
+        color: (R, 3) float32 RGB in [0, 1] interpolated from the mesh's corner colours; 0 on a
+            miss.
+        valid: (R,) bool, the ray hit something.
+        patch_object: (P,) int32 the majority label among the patch's rays, counting a miss as a
+            candidate: -1 when misses are the majority or the patch has no ray.
+        patch_fraction: (P,) float32 share of the patch's rays that hit ``patch_object``.
+    """
+
+    object_id: Array
+    depth: Array
+    t: Array
+    color: Array
+    valid: Array
+    patch_object: Array
+    patch_fraction: Array
+
+
+def _tile_order(shape: tuple[int, int], tile: int = 4) -> np.ndarray:
+    """A permutation of a row-major (h, w) ray image that lists it tile by tile (tile x tile)."""
+    h, w = shape
+    rows, cols = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    key = (rows // tile) * ((w + tile - 1) // tile) + cols // tile
+    return np.lexsort((cols.ravel(), rows.ravel(), key.ravel()))
+
+
+def _world_rays(pose: Array, camera: Camera, grid: RayGrid, tilt: Array | None):
+    """Unit directions in the camera frame (R, 3) and world frame (R, 3) of one view."""
+    d_cam = camera.directions(grid.uv)
+    R_world_cam = rotation_world_cam(pose[3], tilt)
+    return d_cam, d_cam @ R_world_cam.T
+
+
+def _views(scene: SceneGraph, hit: RayHit, d_cam: Array, grid: RayGrid) -> Render:
+    """Depth, colour and patch majority of one view from its rays' hits."""
+    depth = jnp.where(hit.hit, hit.t * d_cam[:, 2], jnp.inf)
+    corner = scene.triangle_colors[jnp.maximum(hit.triangle_id, 0)]  # (R, 3, 3)
+    color = jnp.einsum("rc,rck->rk", hit.barycentric, corner)
+    color = jnp.where(hit.hit[:, None], color, 0.0)
+    num_objects = scene.labels.shape[0]
+    bins = grid.patch * (num_objects + 1) + hit.object_id + 1
+    counts = jnp.zeros(grid.num_patches * (num_objects + 1), jnp.int32).at[bins].add(1)
+    counts = counts.reshape(grid.num_patches, num_objects + 1)
+    winner = jnp.argmax(counts, axis=1)
+    total = jnp.sum(counts, axis=1)
+    fraction = counts[jnp.arange(grid.num_patches), winner] / jnp.maximum(total, 1)
+    patch_object = jnp.where(total > 0, winner - 1, -1).astype(jnp.int32)
+    patch_fraction = jnp.where(patch_object >= 0, fraction, 0.0).astype(jnp.float32)
+    return Render(
+        object_id=hit.object_id,
+        depth=depth,
+        t=hit.t,
+        color=color,
+        valid=hit.hit,
+        patch_object=patch_object,
+        patch_fraction=patch_fraction,
+    )
+
+
+def _check_pose(pose: Array, tilt: Array | None, batch: bool) -> None:
+    want = "(N, 4)" if batch else "(4,)"
+    if jnp.ndim(pose) != (2 if batch else 1) or jnp.shape(pose)[-1] != 4:
+        raise ValueError(f"pose must have shape {want} = (x, y, z, yaw), got {jnp.shape(pose)}")
+    if tilt is not None and jnp.shape(tilt)[-1:] != (2,):
+        raise ValueError(f"tilt must be (pitch, roll) with shape (..., 2), got {jnp.shape(tilt)}")
+
+
+def render(
+    scene: SceneGraph,
+    pose: Array,
+    camera: Camera,
+    grid: RayGrid,
+    tilt: Array | None = None,
+    *,
+    engine: str = "auto",
+) -> Render:
+    """Render one view from ``pose = (x, y, z, yaw)`` (4,) with an optional known tilt (2,).
+
+    Rays follow ``grid`` (see :func:`jaxloc.stride_grid` / :func:`jaxloc.patch_grid`); the frame
+    conventions are those of :mod:`jaxloc.geometry`. Differentiable in ``pose`` through ``depth``
+    and ``t`` (the hit triangle itself is piecewise constant). ``engine`` (static) picks the
+    nearest-hit engine of :func:`jaxloc.raycast`.
+    """
+    _check_pose(pose, tilt, batch=False)
+    d_cam, d_world = _world_rays(pose, camera, grid, tilt)
+    order = _tile_order(grid.shape) if np.prod(grid.shape) == grid.uv.shape[0] else None
+    if order is not None:
+        d_world = d_world[order]
+    hit = raycast(scene, pose[:3], d_world, engine=engine, packet_size=PACKET_SIZE)
+    if order is not None:
+        inverse = np.argsort(order)
+        hit = jax.tree.map(lambda a: a[inverse], hit)
+    return _views(scene, hit, d_cam, grid)
+
+
+def render_batch(
+    scene: SceneGraph,
+    poses: Array,
+    camera: Camera,
+    grid: RayGrid,
+    tilt: Array | None = None,
+    *,
+    engine: str = "auto",
+) -> Render:
+    """Render N views (``poses`` (N, 4), ``tilt`` None, (2,) shared or (N, 2)) in one raycast.
+
+    Returns a :class:`Render` whose arrays have a leading N axis; equal to ``jax.vmap(render)``.
+    ``engine`` (static) picks the nearest-hit engine of :func:`jaxloc.raycast`.
+    """
+    _check_pose(poses, tilt, batch=True)
+    num = poses.shape[0]
+    tilts = None if tilt is None else jnp.broadcast_to(tilt, (num, 2))
+    d_cam = camera.directions(grid.uv)
+    rotations = (
+        jax.vmap(rotation_world_cam)(poses[:, 3], tilts)
+        if tilts is not None
+        else (jax.vmap(rotation_world_cam)(poses[:, 3]))
+    )
+    order = (
+        _tile_order(grid.shape)
+        if np.prod(grid.shape) == grid.uv.shape[0]
+        else np.arange(grid.uv.shape[0])
+    )
+    num_rays = order.shape[0]
+    padded = -(-num_rays // PACKET_SIZE) * PACKET_SIZE
+    d_world = jnp.einsum("nij,rj->nri", rotations, d_cam[order])
+    d_world = jnp.pad(d_world, ((0, 0), (0, padded - num_rays), (0, 0)), constant_values=1.0)
+    origins = jnp.broadcast_to(poses[:, None, :3], d_world.shape)
+    origins = jnp.where(jnp.arange(padded)[None, :, None] < num_rays, origins, jnp.nan)
+    hits = raycast(scene, origins, d_world, engine=engine, packet_size=PACKET_SIZE)
+    inverse = np.argsort(order)
+    hits = jax.tree.map(lambda a: a[:, :num_rays][:, inverse], hits)
+    return jax.vmap(lambda h: _views(scene, h, d_cam, grid))(hits)

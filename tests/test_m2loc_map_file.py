@@ -1,0 +1,167 @@
+"""Saved described maps: exact round trip, validation of every kind of bad file, no pickle, and
+the M2Loc default configuration."""
+
+from __future__ import annotations
+
+import io
+import json
+import zipfile
+
+import jax
+import numpy as np
+import pytest
+
+from jaxloc.io import TRIPLET_MAP_FORMAT_VERSION, MapFormatError, load_triplet_map, save_triplet_map
+from jaxloc.m2loc import build_map, m2loc_config, tripletloc_config
+from jaxloc.synthetic.outdoor import make_outdoor_world
+
+
+@pytest.fixture(scope="module")
+def world():
+    return make_outdoor_world("sparse", seed=3, blocks=1, bridge_length=0)
+
+
+@pytest.fixture(scope="module", params=["m2loc", "tripletloc"])
+def described(world, request):
+    config = m2loc_config(2, top_k=7) if request.param == "m2loc" else tripletloc_config()
+    normals = world.road_normals if request.param == "m2loc" else None
+    return build_map(world.points, world.labels, config, normals)
+
+
+def arrays_of(path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as data:
+        return {key: data[key] for key in data.files}
+
+
+def write_arrays(path, arrays) -> None:
+    np.savez(path, **arrays)
+
+
+def test_round_trip_is_exact(described, tmp_path):
+    path = tmp_path / "map.npz"
+    save_triplet_map(described, path)
+    loaded = load_triplet_map(path)
+    assert loaded.config == described.config
+    assert loaded.has_rsn == described.has_rsn
+    for saved, back in zip(jax.tree.leaves(described), jax.tree.leaves(loaded), strict=True):
+        assert np.asarray(saved).dtype == np.asarray(back).dtype
+        np.testing.assert_array_equal(np.asarray(saved), np.asarray(back))
+    assert not list(tmp_path.glob("*.tmp"))  # the atomic write left no temporary file
+
+
+def test_default_configuration_is_m2loc_with_three_scales(world):
+    triplet_map = build_map(world.points, world.labels)
+    assert triplet_map.config == m2loc_config(3)
+    assert len(triplet_map.descriptors) == 3
+
+
+@pytest.fixture(scope="module")
+def good_file(described, tmp_path_factory):
+    path = tmp_path_factory.mktemp("good") / "map.npz"
+    save_triplet_map(described, path)
+    return path
+
+
+def _edited(good_file, **changes) -> dict[str, np.ndarray]:
+    arrays = arrays_of(good_file)
+    for key, value in changes.items():
+        if value is None:
+            del arrays[key]
+        else:
+            arrays[key] = value
+    return arrays
+
+
+def bad_files(good_file) -> dict[str, tuple[dict | bytes, str]]:
+    arrays = arrays_of(good_file)
+    nan_points = arrays["points"].copy()
+    nan_points[0, 1] = np.nan
+    config = json.loads(str(arrays["config"]))
+    config["surprise"] = 1
+    bad_k = json.loads(str(arrays["config"]))
+    bad_k["top_k"] = 0
+    scaled = arrays["descriptors"].copy()
+    scaled[0] *= 2.0
+    return {
+        "truncated": (good_file.read_bytes()[:2000], "not a readable jaxloc map"),
+        "not a zip": (b"hello", "not a readable jaxloc map"),
+        "wrong version": (
+            _edited(good_file, version=np.array(TRIPLET_MAP_FORMAT_VERSION + 1)),
+            "format version",
+        ),
+        "foreign npz": (_edited(good_file, format=np.array("something else")), "not a jaxloc"),
+        "NaN point": (_edited(good_file, points=nan_points), "'points' contains NaN"),
+        "wrong point shape": (
+            _edited(good_file, points=arrays["points"][:, :2].copy()),
+            "'points' has shape",
+        ),
+        "wrong dtype": (
+            _edited(good_file, classes=arrays["classes"].astype(np.int64)),
+            "'classes' has dtype",
+        ),
+        "missing array": (_edited(good_file, valid=None), "missing array 'valid'"),
+        "descriptors of another size": (
+            _edited(good_file, descriptors=arrays["descriptors"][:, :-1].copy()),
+            "'descriptors' is not",
+        ),
+        "descriptors not unit": (_edited(good_file, descriptors=scaled), "not unit vectors"),
+        "class out of range": (
+            _edited(good_file, classes=np.full_like(arrays["classes"], 7)),
+            "class positions out of range",
+        ),
+        "unknown config field": (
+            _edited(good_file, config=np.array(json.dumps(config))),
+            "unknown TripletConfig fields",
+        ),
+        "invalid config value": (
+            _edited(good_file, config=np.array(json.dumps(bad_k))),
+            "bad configuration",
+        ),
+        "config not JSON": (_edited(good_file, config=np.array("{")), "bad configuration"),
+    }
+
+
+def test_bad_files_raise_map_format_error(good_file, tmp_path):
+    for name, (content, message) in bad_files(good_file).items():
+        path = tmp_path / f"{name.replace(' ', '_')}.npz"
+        if isinstance(content, bytes):
+            path.write_bytes(content)
+        else:
+            write_arrays(path, content)
+        with pytest.raises(MapFormatError, match=message):
+            load_triplet_map(path)
+
+
+def test_a_pickled_array_is_never_loaded(good_file, tmp_path):
+    """An object array (loading it would unpickle, i.e. run code) is refused."""
+    path = tmp_path / "pickled.npz"
+    arrays = arrays_of(good_file)
+    buffer = io.BytesIO()
+    np.save(buffer, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with zipfile.ZipFile(path, "w") as archive:
+        for key, value in arrays.items():
+            item = io.BytesIO()
+            np.save(item, value)
+            archive.writestr(f"{key}.npy", item.getvalue())
+        archive.writestr("evil.npy", buffer.getvalue())
+    with pytest.raises(MapFormatError, match="not a readable"):
+        load_triplet_map(path)
+
+
+def test_missing_file_is_file_not_found(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        load_triplet_map(tmp_path / "absent.npz")
+
+
+def test_failed_save_leaves_the_old_file(described, good_file, tmp_path, monkeypatch):
+    path = tmp_path / "map.npz"
+    path.write_bytes(good_file.read_bytes())
+
+    def broken(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(np, "savez_compressed", broken)
+    with pytest.raises(OSError, match="disk full"):
+        save_triplet_map(described, path)
+    assert path.read_bytes() == good_file.read_bytes()
+    assert not list(tmp_path.glob("*.tmp"))
