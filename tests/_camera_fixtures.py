@@ -18,7 +18,10 @@ The formats follow the datasets' own documentation and reader code:
 
 from __future__ import annotations
 
+import io
 import json
+import struct
+import zlib
 from pathlib import Path
 
 import jax
@@ -233,3 +236,156 @@ def write_sequence(
         hit = patch_object >= 0
         emb[hit] = labels[patch_object[hit], None] == classes[None, :]
         np.save(folder / "embeddings" / f"{number}.npy", emb.reshape(*patch_shape, len(classes)))
+
+
+# ----------------------------------------------------------------- one recording, three layouts
+
+
+class Recording:
+    """Frames rendered once from a scene and written in every camera layout jaxloc reads.
+
+    Matrices are rounded to float32 first and written in text exactly (shortest repr), so the
+    export folder, the ``.sens`` (float32 binary) and the 3RScan sequence hold the same numbers;
+    every layout gets the same JPEG bytes and the same depth values, so the three must load into
+    the same query.
+    """
+
+    def __init__(self, scene, poses, tilts, color_camera, depth_camera, patch_shape, classes):
+        self.color_camera, self.depth_camera = color_camera, depth_camera
+        pose_arr, tilt_arr = jnp.asarray(poses, jnp.float32), jnp.asarray(tilts, jnp.float32)
+        views = jax.jit(render_batch)(
+            scene, pose_arr, color_camera, stride_grid(color_camera, 1, *patch_shape), tilt_arr
+        )
+        depth_views = jax.jit(render_batch)(
+            scene, pose_arr, depth_camera, stride_grid(depth_camera, 1), tilt_arr
+        )
+        labels = np.asarray(scene.labels)
+        shape = (color_camera.height, color_camera.width)
+        depth_shape = (depth_camera.height, depth_camera.width)
+        self.jpegs, self.depth_mm, self.poses, self.embeddings, self.pixel_class = (
+            [],
+            [],
+            [],
+            [],
+            [],
+        )
+        for t in range(len(poses)):
+            rgb = np.asarray(views.color[t]).reshape(shape + (3,))
+            buffer = io.BytesIO()
+            Image.fromarray(np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)).save(
+                buffer, "JPEG", quality=95
+            )
+            self.jpegs.append(buffer.getvalue())
+            depth = np.asarray(depth_views.depth[t]).reshape(depth_shape)
+            self.depth_mm.append(
+                np.where(np.isfinite(depth), np.round(depth * 1000), 0).astype(np.uint16)
+            )
+            pose = camera_to_world(poses[t], tilts[t]).astype(np.float32).astype(np.float64)
+            self.poses.append(pose)
+            patch_object = np.asarray(views.patch_object[t])
+            emb = np.full((patch_object.size, len(classes)), 1.0 / len(classes))
+            hit = patch_object >= 0
+            emb[hit] = labels[patch_object[hit], None] == classes[None, :]
+            self.embeddings.append(emb.reshape(*patch_shape, len(classes)))
+            pixel_object = np.asarray(views.object_id[t]).reshape(shape)
+            self.pixel_class.append(np.where(pixel_object >= 0, labels[pixel_object], 0))
+
+    def K(self, camera: Camera) -> np.ndarray:
+        return intrinsics(camera).astype(np.float32).astype(np.float64)
+
+    def write_embeddings(self, folder: Path, numbers) -> None:
+        (folder / "embeddings").mkdir(parents=True, exist_ok=True)
+        for emb, number in zip(self.embeddings, numbers, strict=True):
+            np.save(folder / "embeddings" / f"{number}.npy", emb)
+
+    def write_export(self, folder: Path, numbers) -> Path:
+        """A ScanNet export folder (SensorData.py's layout)."""
+        for sub in ("color", "depth", "pose", "intrinsic"):
+            (folder / sub).mkdir(parents=True, exist_ok=True)
+        _write_exact(folder / "intrinsic" / "intrinsic_color.txt", self.K(self.color_camera))
+        _write_exact(folder / "intrinsic" / "intrinsic_depth.txt", self.K(self.depth_camera))
+        for t, number in enumerate(numbers):
+            (folder / "color" / f"{number}.jpg").write_bytes(self.jpegs[t])
+            Image.fromarray(self.depth_mm[t].astype(np.uint16)).save(
+                folder / "depth" / f"{number}.png"
+            )
+            _write_exact(folder / "pose" / f"{number}.txt", self.poses[t])
+        self.write_embeddings(folder, numbers)
+        return folder
+
+    def write_sens(self, path: Path, timestamps_us) -> Path:
+        """A version-4 ``.sens`` (sensorData.h's writeHeaderToFile / RGBDFrame::saveToFile:
+        little-endian; jpeg colour, zlib uint16 depth; an IMU count of 0 at the end), frames
+        numbered 0, 1, ...; the embeddings go to ``embeddings/`` beside it."""
+        name = b"StructureSensor"
+        eye = np.eye(4, dtype="<f4")
+        cw, ch = self.color_camera.width, self.color_camera.height
+        dw, dh = self.depth_camera.width, self.depth_camera.height
+        parts = [struct.pack("<IQ", 4, len(name)), name]
+        for matrix in (self.K(self.color_camera), eye, self.K(self.depth_camera), eye):
+            parts.append(np.asarray(matrix, "<f4").tobytes())
+        parts.append(struct.pack("<2i4IfQ", 2, 1, cw, ch, dw, dh, 1000.0, len(self.poses)))
+        for t, pose in enumerate(self.poses):
+            depth = zlib.compress(self.depth_mm[t].astype("<u2").tobytes())
+            parts.append(np.asarray(pose, "<f4").tobytes())
+            parts.append(
+                struct.pack(
+                    "<4Q", timestamps_us[t], timestamps_us[t], len(self.jpegs[t]), len(depth)
+                )
+            )
+            parts += [self.jpegs[t], depth]
+        parts.append(struct.pack("<Q", 0))  # no IMU frames
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_bytes(b"".join(parts))
+        self.write_embeddings(path.parent, range(len(self.poses)))
+        return path
+
+    def write_3rscan(self, scan: Path, numbers, T_scan_world=None) -> Path:
+        """A 3RScan scan folder ``scan/sequence/`` (_info.txt as ScanNet's saveToImages writes
+        it; 16-bit big-endian PGM depth with saveAsPGM's comment line; 4x4 pose text), poses
+        optionally moved into another frame by ``T_scan_world``; embeddings in ``scan/``."""
+        folder = scan / "sequence"
+        folder.mkdir(parents=True, exist_ok=True)
+        cw, ch = self.color_camera.width, self.color_camera.height
+        dw, dh = self.depth_camera.width, self.depth_camera.height
+        info = [
+            "m_versionNumber = 4", "m_sensorName = StructureSensor",
+            f"m_colorWidth = {cw}", f"m_colorHeight = {ch}", f"m_depthWidth = {dw}",
+            f"m_depthHeight = {dh}", "m_depthShift = 1000",
+            "m_calibrationColorIntrinsic = " + _row(self.K(self.color_camera)),
+            "m_calibrationColorExtrinsic = " + _row(np.eye(4)),
+            "m_calibrationDepthIntrinsic = " + _row(self.K(self.depth_camera)),
+            "m_calibrationDepthExtrinsic = " + _row(np.eye(4)),
+            f"m_frames.size = {len(numbers)}",
+        ]  # fmt: skip
+        (folder / "_info.txt").write_text("\n".join(info) + "\n")
+        for t, number in enumerate(numbers):
+            stem = folder / f"frame-{number:06d}"
+            Path(f"{stem}.color.jpg").write_bytes(self.jpegs[t])
+            header = f"P5\n# data values are 16-bit each; depth shift is 1000\n{dw} {dh}\n65535\n"
+            pixels = self.depth_mm[t].astype(">u2").tobytes()
+            Path(f"{stem}.depth.pgm").write_bytes(header.encode() + pixels)
+            pose = self.poses[t] if T_scan_world is None else T_scan_world @ self.poses[t]
+            _write_exact(Path(f"{stem}.pose.txt"), pose)
+        self.write_embeddings(scan, numbers)
+        return scan
+
+    def write_labels(self, folder: Path, numbers, raw_id_of_class: dict[int, int]) -> Path:
+        """16-bit label PNGs ``N.png`` of raw ids (ScanNet's label-filt), 0 where nothing."""
+        folder.mkdir(parents=True, exist_ok=True)
+        lut = np.zeros(max(raw_id_of_class) + 1, np.uint16)
+        for class_id, raw in raw_id_of_class.items():
+            lut[class_id] = raw
+        for t, number in enumerate(numbers):
+            Image.fromarray(lut[self.pixel_class[t]]).save(folder / f"{number}.png")
+        return folder
+
+
+def _row(matrix) -> str:
+    return " ".join(repr(float(v)) for v in np.asarray(matrix).ravel())
+
+
+def _write_exact(path: Path, matrix) -> None:
+    """A 4x4 matrix in text, one row per line, each value as its shortest exact decimal."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(_row(row) + "\n" for row in np.asarray(matrix)))

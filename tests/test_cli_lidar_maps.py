@@ -1,6 +1,11 @@
 """``jaxloc build-lidar-map`` and ``localize-lidar`` on a sequence folder and a saved map, end to
 end: a synthetic SemanticKITTI sequence of a known world is turned into a map, which then
-localizes the sequence's own scans; bad sequences exit with status 2 and write nothing."""
+localizes the sequence's own scans; bad sequences exit with status 2 and write nothing.
+
+The same scans in the HeLiPR / TripletLoc layout (``tests/_helipr_fixtures.py``) build the same
+map and localize the same way (one run per pose format, reusing the compiled programs of the
+SemanticKITTI run: the maps have the same sizes); the ``--poses-out`` files are read with evo's
+own readers and its APE (no alignment, translation part) equals jaxloc's RTE."""
 
 from __future__ import annotations
 
@@ -10,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _helipr_fixtures import FIRST_STAMP, PERIOD_NS, ns_to_seconds, tum_line, write_helipr_sequence
 
 from jaxloc.cli import main
 from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
@@ -23,9 +29,13 @@ def run(argv, capsys):
 
 
 @pytest.fixture(scope="module")
-def sequence_dir(tmp_path_factory) -> Path:
+def scans():
     world = make_outdoor_world("dense", seed=2, blocks=1, bridge_length=0)
-    scans = make_lidar_sequence(world, (10.0, 0.0), (190.0, 0.0), 16, seed=3, max_range=30.0)
+    return make_lidar_sequence(world, (10.0, 0.0), (190.0, 0.0), 16, seed=3, max_range=30.0)
+
+
+@pytest.fixture(scope="module")
+def sequence_dir(scans, tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("sequence")
     write_semantickitti_sequence(root, scans)
     return root
@@ -168,3 +178,166 @@ def test_no_robust_is_m2loc_as_published():
     assert default == m2loc_config(3)
     assert (default.one_to_one, default.hypotheses) == (True, 256)
     assert published == m2loc_config(3, robust=False)
+
+
+# ----------------------------------------------------------------------------- HeLiPR layout
+
+
+@pytest.fixture(scope="module")
+def helipr_dir(scans, tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("helipr") / "Town01"
+    write_helipr_sequence(root, scans)
+    return root
+
+
+def _stamps(count: int) -> list[int]:
+    return [FIRST_STAMP + PERIOD_NS * i for i in range(count)]
+
+
+def _evo_ape(reference, estimate) -> np.ndarray:
+    """evo_ape's default: the translation part, no alignment (evo.core.metrics.APE)."""
+    from evo.core import metrics
+
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((reference, estimate))
+    return np.asarray(ape.error)
+
+
+def test_helipr_sequence_end_to_end_with_evo(scans, built, helipr_dir, tmp_path, capsys):
+    from evo.core import sync
+    from evo.core.trajectory import PosePath3D
+    from evo.tools.file_interface import read_kitti_poses_file, read_tum_trajectory_file
+
+    out = tmp_path / "map"
+    code, stdout, err = run(
+        ["build-lidar-map", helipr_dir, out, "--every", "2", "--no-progress"], capsys
+    )
+    assert code == 0, err
+    assert "(helipr, Ouster): 8 of 16 scans used" in stdout
+    for name in ("instances/15.txt", "instances/17.txt", "instances/18.txt", "RSN/road_normal.txt"):
+        ours, theirs = np.loadtxt(out / name, ndmin=2), np.loadtxt(built[0] / name, ndmin=2)
+        np.testing.assert_allclose(ours, theirs, atol=2e-6, err_msg=name)  # KITTI's %.9e poses
+
+    tum = tmp_path / "estimate.tum"
+    argv = ["localize-lidar", out, helipr_dir, "--every", "5", "--json", "--no-progress"]
+    code, stdout, err = run([*argv, "--poses-out", tum], capsys)
+    assert code == 0, err
+    records = json.loads(stdout)["scans"]
+    stamps = _stamps(16)[::5]
+    assert [r["timestamp_ns"] for r in records] == stamps
+    assert json.loads(stdout)["summary"]["success_rate"] >= 0.75
+
+    # the reference, written here in TUM seconds from the true poses
+    reference_path = tmp_path / "reference.tum"
+    lines = [
+        tum_line(ns_to_seconds(t), p) for t, p in zip(_stamps(16), scans.T_map_scan, strict=True)
+    ]
+    reference_path.write_text("\n".join(lines) + "\n")
+    reference = read_tum_trajectory_file(str(reference_path))
+    estimate = read_tum_trajectory_file(str(tum))
+    valid = [r for r in records if r["valid"]]
+    assert len(estimate.timestamps) == len(valid)  # TUM: the valid scans only
+    reference, estimate = sync.associate_trajectories(reference, estimate, max_diff=0.01)
+    np.testing.assert_allclose(_evo_ape(reference, estimate), [r["rte_m"] for r in valid],
+                               atol=1e-9)  # fmt: skip
+
+    # KITTI out, ground truth from a TUM file in seconds matched by time: the same errors
+    kitti = tmp_path / "estimate.kitti"
+    code, stdout, err = run(
+        [*argv, "--poses-out", kitti, "--pose-format", "kitti", "--gt", reference_path], capsys
+    )
+    assert code == 0, err
+    again = json.loads(stdout)["scans"]
+    for a, b in zip(records, again, strict=True):
+        assert a["valid"] == b["valid"] and abs(a["rte_m"] - b["rte_m"]) < 1e-6, (a, b)
+    single = helipr_dir / "LiDAR" / "Ouster" / f"{stamps[1]}.bin"  # one scan, its stamp kept
+    code, stdout, err = run(
+        ["localize-lidar", out, single, "--gt", reference_path, "--json", "--no-progress"], capsys
+    )
+    assert code == 0, err
+    alone = json.loads(stdout)["scans"][0]
+    assert alone["timestamp_ns"] == stamps[1] and abs(alone["rte_m"] - records[1]["rte_m"]) < 1e-6
+    estimate = read_kitti_poses_file(str(kitti))
+    assert estimate.num_poses == len(again)  # KITTI: every scan, in order
+    truth = PosePath3D(poses_se3=list(scans.T_map_scan[::5]))
+    np.testing.assert_allclose(_evo_ape(truth, estimate), [r["rte_m"] for r in again],
+                               atol=1e-6)  # fmt: skip
+
+
+def test_helipr_notes_and_bad_inputs(scans, helipr_dir, tmp_path, capsys):
+    """A scan without a GT line is left out with a note; malformed HeLiPR files exit 2 with one
+    line naming the file."""
+
+    def copy(name: str) -> Path:
+        target = tmp_path / name
+        shutil.copytree(helipr_dir, target)
+        return target
+
+    gt_name = "LiDAR_GT/Ouster_gt.txt"
+    partial = copy("partial")
+    lines = (partial / gt_name).read_text().splitlines()
+    (partial / gt_name).write_text("\n".join(lines[1:]) + "\n")
+    code, _, err = run(["build-lidar-map", partial, tmp_path / "p", "--no-progress"], capsys)
+    assert code == 0, err
+    assert "note: " in err and "1 scan(s) without a pose at their time left out" in err
+
+    cases = {}
+    truncated = copy("truncated")
+    scan = truncated / "LiDAR" / "Ouster" / f"{FIRST_STAMP}.bin"
+    scan.write_bytes(scan.read_bytes()[:-3])
+    cases["truncated scan"] = ([truncated], f"{FIRST_STAMP}.bin: ")
+    nan = copy("nan_gt")
+    rows = (nan / gt_name).read_text().splitlines()
+    rows[2] = " ".join([*rows[2].split()[:3], "nan", *rows[2].split()[4:]])
+    (nan / gt_name).write_text("\n".join(rows) + "\n")
+    cases["NaN in the GT"] = ([nan], "Ouster_gt.txt:3: pose has NaN or inf")
+    units = copy("units")
+    rows = (units / gt_name).read_text().splitlines()
+    seconds = [" ".join([ns_to_seconds(int(r.split()[0])), *r.split()[1:]]) for r in rows]
+    (units / gt_name).write_text("\n".join(seconds) + "\n")
+    cases["GT stamps in seconds"] = ([units], "is not an integer (ns)")
+    label = copy("short_label")
+    path = label / "labels" / f"{FIRST_STAMP + 3 * PERIOD_NS}.label"
+    path.write_bytes(path.read_bytes()[:-4])
+    cases["short label file"] = ([label, "--every", "3"], "labels for")
+    cases["absent sensor"] = ([helipr_dir, "--sensor", "Avia"], "no scans in LiDAR/Avia/")
+    cases["forced layout"] = ([helipr_dir, "--format", "semantickitti"], "calib.txt: missing")
+    for name, (argv, expected) in cases.items():
+        command = ["build-lidar-map", argv[0], tmp_path / "x", *argv[1:], "--no-progress"]
+        code, _, err = run(command, capsys)
+        assert code == 2, (name, err)
+        assert err.startswith("jaxloc build-lidar-map: error: ") and expected in err, (name, err)
+        assert len(err.strip().splitlines()) == 1, (name, err)
+        assert not (tmp_path / "x").exists(), name
+
+
+def test_poses_out_leaves_invalid_scans_out_of_tum_only(tmp_path, capsys):
+    """TUM: valid scans, stamped with their time or else their scan number; KITTI: every scan in
+    order, a failed one with the identity jaxloc returns for it."""
+    from argparse import Namespace
+    from collections import namedtuple
+
+    from evo.tools.file_interface import read_kitti_poses_file, read_tum_trajectory_file
+
+    from jaxloc.cli._lidar_scans import ScanRef, write_poses_out
+
+    result = namedtuple("Result", "pose valid")
+    moved = np.eye(4)
+    moved[:3, 3] = [1.0, 2.0, 3.0]
+    results = [result(moved, True), result(np.eye(4), False), result(moved, True)]
+    numbered = [ScanRef(Path(name), number) for name, number in (("a", 0), ("b", 5), ("c", 10))]
+    args = Namespace(poses_out=tmp_path / "n.tum", pose_format="tum", command="localize-lidar")
+    write_poses_out(args, numbered, results)
+    assert "1 scan(s) that did not localize left out" in capsys.readouterr().err
+    trajectory = read_tum_trajectory_file(str(tmp_path / "n.tum"))
+    np.testing.assert_array_equal(trajectory.timestamps, [0.0, 10.0])
+    np.testing.assert_array_equal(trajectory.positions_xyz, [[1, 2, 3], [1, 2, 3]])
+    timed = [ref._replace(timestamp=FIRST_STAMP + ref.number) for ref in numbered]
+    args.poses_out = tmp_path / "t.tum"
+    write_poses_out(args, timed, results)
+    first = (tmp_path / "t.tum").read_text().splitlines()[0].split(" ")[0]
+    assert first == "1691900000.123456789"
+    args = Namespace(poses_out=tmp_path / "k.txt", pose_format="kitti", command="localize-lidar")
+    write_poses_out(args, numbered, results)
+    kitti = read_kitti_poses_file(str(tmp_path / "k.txt"))
+    np.testing.assert_array_equal(np.asarray(kitti.poses_se3), [moved, np.eye(4), moved])

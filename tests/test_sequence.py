@@ -99,11 +99,28 @@ def test_non_finite_embeddings(bad):
         make(patch_embeddings=emb)
 
 
-def test_zero_embedding():
+def test_a_zero_embedding_is_a_patch_without_evidence():
+    """A zero vector (a patch whose label image holds no class of the map) is accepted; it
+    predicts no object and adds nothing to either semantic score: the score equals that of the
+    same view with the patch rendering nothing."""
+    from jaxloc.sg2loc.scores import match_patches, semantic_score
+
     emb = valid_arrays()["patch_embeddings"]
     emb[2, 1, 0] = 0.0
-    with pytest.raises(ValueError, match=r"zero vectors \(cosine undefined\)"):
-        make(patch_embeddings=emb)
+    sequence = make(patch_embeddings=emb)
+    objects = np.random.default_rng(1).normal(size=(5, DIM))
+    patches = np.asarray(sequence.patch_embeddings[2]).reshape(-1, DIM)
+    match = match_patches(patches, objects, np.ones(5, bool))
+    zero = 1 * COLS + 0
+    assert int(match.predicted[zero]) == -1
+    rendered = np.asarray(match.predicted).copy()
+    rendered[zero] = 3  # the zero patch sees object 3
+    hidden = rendered.copy()
+    hidden[zero] = -1
+    for variant in ("gated", "soft"):
+        assert float(semantic_score(match, rendered, variant)) == pytest.approx(
+            float(semantic_score(match, hidden, variant))
+        )
 
 
 def test_no_frames():

@@ -4,7 +4,7 @@
 * ``jaxloc localize-lidar MAP_DIR SCAN...``: one-shot LiDAR localization (M2Loc) of scans in a
   HeLiPR/TripletLoc instance map; prints ``T_map_scan`` per scan, optionally RTE/RRE.
 * ``jaxloc build-lidar-map SEQ_DIR OUT_DIR``: instance and road-normal maps from a labelled LiDAR
-  sequence (SemanticKITTI layout), in the format ``localize-lidar`` reads.
+  sequence (SemanticKITTI, plain or HeLiPR layout), in the format ``localize-lidar`` reads.
 * ``jaxloc bench raycast|filter|triplet``: quick in-package speed checks after compilation.
 * ``jaxloc build-scene-graph SCAN OUT.npz``: a map from a ScanNet / 3RScan / labelled scan.
 * ``jaxloc localize-camera MAP.npz SEQ_DIR``: SG2Loc on a folder of RGB-D frames.
@@ -32,9 +32,12 @@ from jaxloc.cli._lidar import (
     DEFAULT_THRESHOLD,
     run_localize_lidar,
 )
+from jaxloc.cli._lidar import DESCRIPTION as _LIDAR_DESCRIPTION
+from jaxloc.cli._lidar import EPILOG as _LIDAR_EPILOG
 from jaxloc.cli._lidar_map import DESCRIPTION as _BUILD_LIDAR_MAP_DESCRIPTION
 from jaxloc.cli._lidar_map import EPILOG as _BUILD_LIDAR_MAP_EPILOG
 from jaxloc.cli._lidar_map import run_build_lidar_map
+from jaxloc.cli._lidar_scans import add_pose_output_options, add_sequence_options
 
 __all__ = ["InputError", "build_parser", "main"]
 
@@ -52,50 +55,6 @@ examples:
   jaxloc localize-camera scene0000_00.npz scans/scene0000_00/export --plot run.png
 
 Run `jaxloc COMMAND --help` for the options of a command.
-"""
-
-_LIDAR_DESCRIPTION = """\
-One-shot global localization of LiDAR scans in an instance map (M2Loc / TripletLoc).
-
-MAP is a HeLiPR/TripletLoc instance map folder (e.g. written by build-lidar-map):
-  MAP/instances/15.txt, 17.txt, 18.txt   lines "id x y z" (trunks, poles, traffic signs; map
-                                         frame, metres)
-  MAP/RSN/road_normal.txt                optional, lines "x y nx ny nz std_deg": road-surface
-                                         normals, used as a roll/pitch prior
-or a described map saved with --save-map (FILE.npz): it loads in about a second instead of being
-described again; -k, --threshold, --min-clique and --no-rsn still apply to it.
-
-Each SCAN is one of:
-  NAME.bin       a SemanticKITTI scan (float32 x y z intensity); its labels NAME.label are read
-                 from beside it or from ../labels/ (the dataset layout). Instances are clustered
-                 from the trunk, pole and traffic-sign points (TripletLoc's recipe).
-  NAME.txt       instance centroids already extracted: lines "class_id x y z" (class_id 15, 17
-                 or 18; scan frame, metres; '#' starts a comment)
-  a folder       instances/15.txt, 17.txt, 18.txt in the map's own format
-  SEQ_DIR        a labelled sequence (velodyne/*.bin + labels/*.label, see build-lidar-map):
-                 every --every-th scan of it; its poses.txt (with calib.txt) gives the ground
-                 truth when --gt is not given
-
-The map's descriptors are built once; every scan is then described, matched, and registered.
-Per scan it prints the 4x4 T_map_scan (p_map = T_map_scan @ p_scan), whether it is valid, the
-size of the maximum clique of consistent matches, and the times. The first scan of each
-instance count band (32, 64, ...) also compiles (reported separately).
-"""
-
-_LIDAR_EPILOG = """\
-examples:
-  jaxloc localize-lidar ../shared/data/helipr_instance_maps/KAIST04 \\
-      ../shared/data/semantickitti_scan/000000.bin
-  jaxloc localize-lidar MAP scan_centroids.txt --scales 1 -k 10
-  jaxloc localize-lidar MAP scans/*.txt --gt poses.txt --json > result.json
-  jaxloc localize-lidar MAP_DIR scans/*.bin --save-map map.npz   # describe once, save
-  jaxloc localize-lidar map.npz sequences/00 --every 20           # reuse the saved map
-
---gt FILE: one ground-truth T_map_scan per line, in the order of the scans: 12 numbers (KITTI
-3x4, row-major) or 16 (4x4, row-major). Then RTE (m) and RRE (deg) are printed, and the success
-rate (valid, RTE < 7.5 m, RRE < 10 deg).
-
-exit status: 0 on success, 2 on missing or malformed files or bad options (one-line message).
 """
 
 _BENCH_EPILOG = """\
@@ -213,18 +172,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     lidar.add_argument("map", type=Path, metavar="MAP", help="instance map folder or saved .npz")
     lidar.add_argument("scans", type=Path, nargs="+", metavar="SCAN", help="scan file(s)")
-    lidar.add_argument("--gt", type=Path, help="ground-truth poses, one per scan (see below)")
+    lidar.add_argument("--gt", type=Path, help="ground-truth poses: KITTI, 4x4 or TUM (see below)")
     lidar.add_argument(
         "--every", type=int, default=1, help="of a sequence folder, every N-th scan (default 1)"
     )
     lidar.add_argument("--save-map", type=Path, metavar="FILE", help="save the described map")
     lidar.add_argument("--json", action="store_true", help="print one JSON document instead")
     lidar.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_sequence_options(lidar)
+    add_pose_output_options(lidar)
     _add_triplet_options(lidar, scales=None, k=None)
 
     build = commands.add_parser(
         "build-lidar-map",
-        help="instance + road-normal maps from a labelled LiDAR sequence (SemanticKITTI layout)",
+        help="instance + road-normal maps from a labelled LiDAR sequence (SemanticKITTI, HeLiPR)",
         description=_BUILD_LIDAR_MAP_DESCRIPTION,
         epilog=_BUILD_LIDAR_MAP_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -236,6 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     build.add_argument("--save-map", type=Path, metavar="FILE", help="also save it described")
     build.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_sequence_options(build)
     _add_triplet_options(build, scales=None, k=None)
 
     bench = commands.add_parser(

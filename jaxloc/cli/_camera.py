@@ -1,4 +1,5 @@
-"""``jaxloc localize-camera``: SG2Loc on a map file and a folder of RGB-D frames."""
+"""``jaxloc localize-camera``: SG2Loc on a map file and a camera recording (ScanNet export folder,
+ScanNet ``.sens`` or 3RScan sequence)."""
 
 from __future__ import annotations
 
@@ -13,25 +14,35 @@ from jaxloc.cli._errors import InputError
 DESCRIPTION = """\
 Localize a camera sequence in a scene graph (SG2Loc's coarse-to-fine particle filter).
 
-MAP.npz is a map written by `jaxloc build-scene-graph` (or jaxloc.save_scene). SEQ_DIR is a
-ScanNet-export folder (SensReader's layout) with the patch embeddings of each frame:
-  color/N.jpg                    colour frames, sorted by the number N
-  depth/N.png                    optional: uint16 depth, millimetres, 0 = invalid
-  pose/N.txt                     4x4 camera-to-world (ground truth; frames whose pose is -inf
-                                 are skipped)
-  intrinsic/intrinsic_color.txt  4x4 K of the colour camera
-  intrinsic/intrinsic_depth.txt  4x4 K of the depth camera (needed when its size differs)
-  embeddings/N.npy               (rows, cols, d) patch embeddings, d = the map's dimension
-  odometry.txt                   optional: lines "N m00 ... m33" (camera-to-odometry, z up):
-                                 the ego-motion and tilt come from it instead of pose/
+MAP.npz is a map written by `jaxloc build-scene-graph` (or jaxloc.save_scene). SEQ is one of
+(detected; --format names one):
+ scannet-export  a ScanNet export folder (SensReader's layout):
+                   color/N.jpg, depth/N.png (uint16 mm), pose/N.txt (4x4 camera-to-world; -inf =
+                   no pose, skipped), intrinsic/intrinsic_color.txt, intrinsic_depth.txt
+ sens            a ScanNet .sens file, read frame by frame (frames numbered 0, 1, ...)
+ 3rscan          a 3RScan scan folder <scan_id>/ or its sequence/: _info.txt,
+                   frame-NNNNNN.color.jpg, .depth.pgm, .pose.txt (images used as stored); a
+                   rescan's poses go to its reference scan's frame with --rescan-json 3RScan.json
+                   (or --transform FILE, a 4x4 rescan-to-reference matrix)
+Patch embeddings per frame number N: embeddings/N.npy ((rows, cols, d), d = the map's dimension;
+--embeddings DIR, default embeddings/ beside the frames) or, without them, label images
+--labels DIR/N.png (8- or 16-bit class ids, 0 = unknown; --label-table maps raw ScanNet ids, as in
+label-filt/, to the map's classes), turned into embeddings with the map's class embeddings.
+An odometry file (--odometry, default odometry.txt beside the frames: lines "N m00 ... m33",
+camera-to-odometry, z up) gives the ego-motion and tilt instead of the recording's poses.
 
 Per frame it prints the estimate (x, y, z in metres, yaw in degrees; the map's frame) and, with
-ground truth in pose/, the position and rotation errors and the recalls.
+ground-truth poses, the position and rotation errors and the recalls. --poses-out writes the
+estimated camera-to-world poses for evo (TUM: the frame's timestamp in seconds from a .sens, else
+its number; KITTI: one 3x4 per line).
 """
 
 EPILOG = """\
 examples:
   jaxloc localize-camera scene0000_00.npz scans/scene0000_00/export
+  jaxloc localize-camera scene0000_00.npz scans/scene0000_00/scene0000_00.sens --step 10 \
+      --labels label-filt --label-table scannetv2-labels.combined.tsv --poses-out est.tum
+  jaxloc localize-camera <ref_id>.npz 3RScan/<rescan_id> --rescan-json 3RScan.json
   jaxloc localize-camera room.npz seq --heights 1.2 1.3 1.4 1.5 --particles 4000 --plot run.png
   jaxloc localize-camera room.npz seq --max-frames 10 --step 5 --refine --json > result.json
 
@@ -51,7 +62,25 @@ def add_parser(commands) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("map", type=Path, metavar="MAP.npz", help="the map file")
-    parser.add_argument("seq_dir", type=Path, metavar="SEQ_DIR", help="the sequence folder")
+    parser.add_argument("seq_dir", type=Path, metavar="SEQ", help="the recording (see above)")
+    data = parser.add_argument_group("the recording")
+    data.add_argument("--format", choices=("scannet-export", "sens", "3rscan"), help="its layout")
+    data.add_argument("--embeddings", type=Path, metavar="DIR", help="patch embeddings N.npy")
+    data.add_argument("--labels", type=Path, metavar="DIR", help="label images N.png")
+    data.add_argument("--label-table", type=Path, metavar="TSV", help="raw id -> class id table")
+    data.add_argument(
+        "--label-column", default="nyu40id", help="--label-table's class column (default nyu40id)"
+    )
+    data.add_argument(
+        "--patches", type=int, nargs=2, default=[9, 16], metavar=("ROWS", "COLS"),
+        help="patch grid of embeddings made from label images (default 9 16)",
+    )  # fmt: skip
+    data.add_argument("--rescan-json", type=Path, metavar="JSON", help="3RScan.json (3rscan)")
+    data.add_argument("--scan-id", help="the rescan's id in --rescan-json (default: folder name)")
+    data.add_argument("--transform", type=Path, metavar="FILE", help="4x4 applied to the poses")
+    data.add_argument(
+        "--odometry", type=Path, metavar="FILE", help="'N m00 ... m33', TUM or KITTI poses"
+    )
     group = parser.add_argument_group("filter settings")
     group.add_argument("--particles", type=int, default=2500, help="particle capacity")
     group.add_argument(
@@ -76,6 +105,10 @@ def add_parser(commands) -> None:
     group.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     out = parser.add_argument_group("output")
     out.add_argument("--json", action="store_true", help="print one JSON document instead")
+    out.add_argument("--poses-out", type=Path, metavar="FILE", help="estimated poses, for evo")
+    out.add_argument(
+        "--pose-format", choices=("tum", "kitti"), default="tum", help="--poses-out's format"
+    )
     out.add_argument("--refine", action="store_true", help="refine the last frame with depth")
     out.add_argument("--plot", type=Path, metavar="FILE", help="figure of particles (PNG)")
     out.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -117,10 +150,77 @@ def _refine_last(scene, folder, result) -> dict:
     return out
 
 
+def _load_recording(args: argparse.Namespace, scene):
+    """The query of ``args.seq_dir`` (:func:`jaxloc.io.load_camera_sequence`) with the map's
+    class embeddings and the recording's transform."""
+    from jaxloc.io import (
+        load_camera_sequence,
+        load_class_embeddings,
+        read_label_table,
+        read_rescan_transform,
+    )
+    from jaxloc.io.camera_frames import read_matrix
+    from jaxloc.io.rscan_sequence import scan_id_of
+
+    if args.rescan_json is not None and args.transform is not None:
+        raise InputError("give --rescan-json or --transform, not both")
+    transform = None
+    if args.transform is not None:
+        transform = read_matrix(args.transform)
+    elif args.rescan_json is not None:
+        scan_id = args.scan_id or scan_id_of(args.seq_dir)
+        transform = read_rescan_transform(args.rescan_json, scan_id)
+    label_map = None
+    if args.label_table is not None:
+        table = read_label_table(args.label_table, args.label_column, key="id")
+        label_map = {int(k): v for k, v in table.items() if k.isdigit()}
+    classes = load_class_embeddings(args.map) if args.labels is not None else None
+    if min(args.patches) < 1:
+        raise InputError(f"--patches must be >= 1, got {args.patches}")
+    return load_camera_sequence(
+        args.seq_dir,
+        args.format,
+        args.width,
+        args.height,
+        embedding_dim=int(scene.embeddings.shape[1]),
+        embeddings_dir=args.embeddings,
+        labels_dir=args.labels,
+        classes=classes,
+        label_map=label_map,
+        patch_shape=tuple(args.patches),
+        transform=transform,
+        odometry=args.odometry,
+        step=args.step,
+        max_frames=args.max_frames,
+        use_depth=not args.no_depth,
+        use_rgb=not args.no_rgb,
+    )
+
+
+def _write_poses(args: argparse.Namespace, folder, poses: np.ndarray) -> None:
+    """``--poses-out``: the estimated camera-to-world poses (the estimate's x, y, z, yaw and the
+    frame's known tilt), TUM (timestamps, else frame numbers) or KITTI."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxloc.geometry import yaw_pose_to_se3
+    from jaxloc.io.poses import write_kitti, write_tum
+
+    tilt = jnp.asarray(folder.sequence.tilt)
+    se3 = jax.vmap(yaw_pose_to_se3)(jnp.asarray(poses, jnp.float32), tilt)
+    matrices = np.asarray(se3.as_matrix(), np.float64)
+    if args.pose_format == "kitti":
+        write_kitti(args.poses_out, matrices)
+        return
+    stamps = folder.timestamps
+    if stamps is None:
+        stamps = np.asarray(folder.frame_ids, np.float64)
+    write_tum(args.poses_out, matrices, stamps)
+
+
 def run_localize_camera(args: argparse.Namespace) -> int:
     import jax
 
-    from jaxloc.io.camera_folder import load_camera_folder
     from jaxloc.io.scene_map import load_scene
     from jaxloc.metrics import summarize, yaw_pose_errors
     from jaxloc.sg2loc import localize
@@ -129,21 +229,12 @@ def run_localize_camera(args: argparse.Namespace) -> int:
     config = _config(args)
     try:
         scene = load_scene(args.map)
-        folder = load_camera_folder(
-            args.seq_dir,
-            args.width,
-            args.height,
-            embedding_dim=int(scene.embeddings.shape[1]),
-            step=args.step,
-            max_frames=args.max_frames,
-            use_depth=not args.no_depth,
-            use_rgb=not args.no_rgb,
-        )
+        folder = _load_recording(args, scene)
     except ValueError as error:
         raise InputError(str(error)) from None
     seq = folder.sequence
     if args.refine and seq.depth is None:
-        raise InputError(f"--refine needs depth images: {args.seq_dir / 'depth'} (no --no-depth)")
+        raise InputError(f"--refine needs depth images in {args.seq_dir} (and no --no-depth)")
     if seq.rgb is not None:
         for stride in args.strides:
             rays = (-(-seq.camera.width // stride), -(-seq.camera.height // stride))
@@ -156,7 +247,8 @@ def run_localize_camera(args: argparse.Namespace) -> int:
     if not args.json:
         print(
             f"map: {scene.num_objects} objects, {scene.num_triangles} triangles; sequence: "
-            f"{seq.num_frames} frames ({len(folder.skipped)} skipped without a pose), "
+            f"{seq.num_frames} frames of a {folder.format} recording ({len(folder.skipped)} "
+            "skipped without a pose), "
             f"{seq.camera.width}x{seq.camera.height} px, {seq.patch_shape[0]}x"
             f"{seq.patch_shape[1]} patches, depth {'yes' if seq.depth is not None else 'no'}"
         )
@@ -165,6 +257,7 @@ def run_localize_camera(args: argparse.Namespace) -> int:
     report: dict = {
         "map": str(args.map),
         "sequence": str(args.seq_dir),
+        "format": folder.format,
         "frames": list(folder.frame_ids),
         "skipped": list(folder.skipped),
         "poses": poses.tolist(),
@@ -178,6 +271,9 @@ def run_localize_camera(args: argparse.Namespace) -> int:
         report["last_frame"] = summarize(errors[0][-1:], errors[1][-1:])
     if args.refine:
         report["refined"] = _refine_last(scene, folder, result)
+    if args.poses_out is not None:
+        _write_poses(args, folder, poses)
+        report["poses_out"] = str(args.poses_out)
     if args.plot is not None:
         report["figure"] = str(plot_rounds(result, folder.poses_gt, args.plot, scene=scene))
     if args.json:

@@ -1,139 +1,84 @@
-"""``jaxloc localize-lidar``: M2Loc on a HeLiPR/TripletLoc instance map and scan files."""
+"""``jaxloc localize-lidar``: M2Loc on a HeLiPR/TripletLoc instance map and scan files or
+sequences (SemanticKITTI, plain or HeLiPR layout)."""
 
 from __future__ import annotations
 
 import argparse
 import json
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
 from jaxloc.cli._errors import InputError
+from jaxloc.cli._lidar_scans import (
+    POSES_OUT_HELP,
+    ScanInstances,
+    ScanRef,
+    attach_ground_truth,
+    check_poses_out,
+    expand_scans,
+    load_scan,
+    note,
+    write_poses_out,
+)
 
-#: Suffix of an instance-centroid scan file (lines ``class_id x y z``).
-CENTROID_SUFFIX = ".txt"
+DESCRIPTION = """\
+One-shot global localization of LiDAR scans in an instance map (M2Loc / TripletLoc).
 
+MAP is a HeLiPR/TripletLoc instance map folder (e.g. written by build-lidar-map):
+  MAP/instances/15.txt, 17.txt, 18.txt   lines "id x y z" (trunks, poles, traffic signs; map
+                                         frame, metres)
+  MAP/RSN/road_normal.txt                optional, lines "x y nx ny nz std_deg": road-surface
+                                         normals, used as a roll/pitch prior
+or a described map saved with --save-map (FILE.npz): it loads in about a second instead of being
+described again; -k, --threshold, --min-clique and --no-rsn still apply to it. A map smaller than
+-k (default 25) is used with -k clamped to its vertex count (a note on stderr).
 
-class ScanInstances(NamedTuple):
-    """Instance centroids of one scan: ``points`` (N, 3) float64 metres in the scan frame,
-    ``labels`` (N,) int class ids, ``load_ms`` time to read (and cluster) the scan."""
+Each SCAN is one of:
+  NAME.bin       a SemanticKITTI scan (float32 x y z intensity); its labels NAME.label are read
+                 from beside it or from ../labels/ (the dataset layout). Instances are clustered
+                 from the trunk, pole and traffic-sign points (TripletLoc's recipe).
+  SEQ/LiDAR/<sensor>/<stamp>.bin
+                 a HeLiPR scan (the sensor's point records) with SEQ/labels/<stamp>.label
+  NAME.txt       instance centroids already extracted: lines "class_id x y z" (class_id 15, 17
+                 or 18; scan frame, metres; '#' starts a comment)
+  a folder       instances/15.txt, 17.txt, 18.txt in the map's own format
+  SEQ_DIR        a labelled sequence in any layout build-lidar-map reads (SemanticKITTI,
+                 plain with velodyne/, HeLiPR / TripletLoc; --format, --sensor): every
+                 --every-th scan of it; its poses (poses.txt with calib.txt, or HeLiPR's
+                 LiDAR_GT/<Sensor>_gt.txt) give the ground truth when --gt is not given
 
-    points: np.ndarray
-    labels: np.ndarray
-    load_ms: float
+The map's descriptors are built once; every scan is then described, matched, and registered.
+Per scan it prints the 4x4 T_map_scan (p_map = T_map_scan @ p_scan), whether it is valid, the
+size of the maximum clique of consistent matches, and the times. The first scan of each
+instance count band (32, 64, ...) also compiles (reported separately).
+"""
 
+EPILOG = f"""\
+examples:
+  jaxloc localize-lidar ../shared/data/helipr_instance_maps/KAIST04 \\
+      ../shared/data/semantickitti_scan/000000.bin
+  jaxloc localize-lidar MAP scan_centroids.txt --scales 1 -k 10
+  jaxloc localize-lidar MAP scans/*.txt --gt poses.txt --json > result.json
+  jaxloc localize-lidar MAP_DIR scans/*.bin --save-map map.npz   # describe once, save
+  jaxloc localize-lidar map.npz sequences/00 --every 20           # reuse the saved map
+  jaxloc localize-lidar maps/KAIST04 KAIST05 --every 10 --poses-out kaist05.tum
+  evo_ape tum gt_in_seconds.tum kaist05.tum                       # no alignment: RTE
 
-def _label_path(bin_path: Path) -> Path:
-    """The ``.label`` of a SemanticKITTI ``.bin``: beside it, or in ``../labels/`` (the dataset's
-    ``velodyne/`` + ``labels/`` layout)."""
-    beside = bin_path.with_suffix(".label")
-    if beside.exists():
-        return beside
-    dataset_layout = bin_path.parent.parent / "labels" / beside.name
-    if dataset_layout.exists():
-        return dataset_layout
-    raise InputError(f"{bin_path}: no label file (looked for {beside} and {dataset_layout})")
+--gt FILE: the ground-truth T_map_scan, one pose a line: 12 numbers (KITTI 3x4, row-major), 16
+(4x4, row-major) or 8 (TUM "t x y z qx qy qz qw", t in seconds; or HeLiPR's LiDAR_GT lines,
+t in integer nanoseconds). Poses with timestamps are matched to scans with timestamps (HeLiPR
+scans, sequences with times.txt) by time: integer nanoseconds exactly, seconds within 1 ms; a
+scan without a pose at its time is not judged. Otherwise line i belongs to the i-th scan. Then
+RTE (m) and RRE (deg) are printed, and the success rate (valid, RTE < 7.5 m, RRE < 10 deg).
 
+{POSES_OUT_HELP}
 
-def _read_number_rows(path: Path, columns: tuple[int, ...], what: str) -> list[np.ndarray]:
-    """Rows of finite numbers of a text file (blank lines and ``#`` comments skipped), each with
-    one of the allowed column counts."""
-    rows = []
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as error:
-        raise InputError(f"{path}: not a text file ({what})") from error
-    for line_number, line in enumerate(text.splitlines(), start=1):
-        fields = line.split("#", 1)[0].split()
-        if not fields:
-            continue
-        if len(fields) not in columns:
-            allowed = " or ".join(str(c) for c in columns)
-            raise InputError(
-                f"{path}:{line_number}: expected {allowed} numbers ({what}), got {len(fields)}"
-            )
-        try:
-            values = np.array([float(field) for field in fields])
-        except ValueError as error:
-            raise InputError(f"{path}:{line_number}: not a number in {line.strip()!r}") from error
-        if not np.all(np.isfinite(values)):
-            raise InputError(f"{path}:{line_number}: non-finite value in {line.strip()!r}")
-        rows.append(values)
-    return rows
-
-
-def load_centroid_scan(path: Path, classes: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
-    """Read an instance-centroid scan file: lines ``class_id x y z`` (scan frame, metres).
-
-    Returns (N, 3) float64 points and (N,) int64 class ids.
-
-    Raises:
-        InputError: wrong field count, non-numbers, non-integer or unknown class ids.
-    """
-    rows = _read_number_rows(path, (4,), "class_id x y z")
-    table = np.asarray(rows, np.float64).reshape(-1, 4)
-    labels = table[:, 0]
-    if np.any(labels != np.round(labels)):
-        raise InputError(f"{path}: class ids (first column) must be integers")
-    unknown = sorted(set(labels.astype(int).tolist()) - set(classes))
-    if unknown:
-        raise InputError(f"{path}: unknown class ids {unknown}; expected some of {list(classes)}")
-    return table[:, 1:4], labels.astype(np.int64)
-
-
-def check_scan_path(path: Path) -> None:
-    """Cheap checks before any work: the scan exists, its format is known, a ``.bin`` has labels."""
-    if not path.exists():
-        raise InputError(f"missing scan: {path}")
-    if path.is_dir():
-        return
-    if path.suffix == ".bin":
-        _label_path(path)
-    elif path.suffix != CENTROID_SUFFIX:
-        raise InputError(
-            f"{path}: unknown scan format (expected .bin + .label, a {CENTROID_SUFFIX} "
-            "centroid file, or a folder with instances/<class>.txt)"
-        )
-
-
-def load_scan(path: Path, classes: Sequence[int]) -> ScanInstances:
-    """Instance centroids of a scan given as a SemanticKITTI ``.bin`` (+ ``.label``), a centroid
-    ``.txt`` (``class_id x y z``), or a folder in the map's format (``instances/<class>.txt``)."""
-    from jaxloc.io import load_instance_map, load_semantickitti_scan
-    from jaxloc.m2loc import cluster_instances
-
-    check_scan_path(path)
-    start = time.perf_counter()
-    try:
-        if path.is_dir():
-            instances = load_instance_map(path, tuple(classes))
-            points, labels = instances.points, instances.labels
-        elif path.suffix == ".bin":
-            scan = load_semantickitti_scan(path, _label_path(path))
-            instances = cluster_instances(scan.points, scan.labels)
-            points, labels = instances.points, instances.labels
-        else:
-            points, labels = load_centroid_scan(path, classes)
-    except ValueError as error:  # the library loaders' malformed-file errors
-        raise InputError(str(error)) from error
-    return ScanInstances(points, labels, 1e3 * (time.perf_counter() - start))
-
-
-def load_poses(path: Path, count: int) -> np.ndarray:
-    """Ground-truth ``T_map_scan`` per scan: one pose per line, 12 numbers (KITTI 3x4 row-major)
-    or 16 (4x4 row-major), in the order of the scans. Returns (count, 4, 4) float64."""
-    from jaxloc.io import read_poses
-
-    try:
-        poses = read_poses(path)
-    except ValueError as error:
-        raise InputError(str(error)) from error
-    if len(poses) != count:
-        raise InputError(f"{path}: {len(poses)} poses for {count} scan(s)")
-    return poses
+exit status: 0 on success, 2 on missing or malformed files or bad options (one-line message).
+"""
 
 
 #: Defaults of the localization options (None in argparse, so that a saved map can tell which
@@ -201,12 +146,39 @@ def load_map_files(map_dir: Path, classes: Sequence[int], use_rsn: bool):
     return instances, normals
 
 
-def describe_map(points: np.ndarray, labels: np.ndarray, config, normals, name: str):
-    """:func:`jaxloc.m2loc.build_map` with its input errors reported as InputError."""
+def notes_of_small_maps(command: str, name: str):
+    """A context manager that turns :class:`jaxloc.m2loc.SmallMapWarning` into one note per
+    warning on stderr (a clamped ``top_k`` is not an error)."""
+    import contextlib
+
+    from jaxloc.m2loc import SmallMapWarning
+
+    @contextlib.contextmanager
+    def catching():
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", SmallMapWarning)
+            yield
+        for warning in caught:
+            if issubclass(warning.category, SmallMapWarning):
+                note(command, f"map {name}: {warning.message}")
+            else:
+                warnings.warn_explicit(
+                    warning.message, warning.category, warning.filename, warning.lineno
+                )
+
+    return catching()
+
+
+def describe_map(
+    points: np.ndarray, labels: np.ndarray, config, normals, name: str, command: str = "bench"
+):
+    """:func:`jaxloc.m2loc.build_map` with its input errors reported as InputError and a clamped
+    ``top_k`` as a note on stderr (``jaxloc COMMAND: note: ...``)."""
     from jaxloc.m2loc import build_map
 
     try:
-        return build_map(points, labels, config, normals)
+        with notes_of_small_maps(command, name):
+            return build_map(points, labels, config, normals)
     except ValueError as error:
         raise InputError(f"map {name}: {error}") from error
 
@@ -220,6 +192,7 @@ def open_map(path: Path, args: argparse.Namespace):
     import equinox as eqx
 
     from jaxloc.io import load_triplet_map
+    from jaxloc.m2loc import fit_config_to_map
 
     start = time.perf_counter()
     if path.is_file():
@@ -229,17 +202,19 @@ def open_map(path: Path, args: argparse.Namespace):
                 "--scales / --tripletloc (or describe the map folder again)"
             )
         try:
-            triplet_map = load_triplet_map(path)
-            config = dataclasses.replace(triplet_map.config, **_matching_options(args))
+            with notes_of_small_maps(args.command, str(path)):
+                triplet_map = load_triplet_map(path)
+                config = dataclasses.replace(triplet_map.config, **_matching_options(args))
+                config = fit_config_to_map(config, int(triplet_map.points.shape[0]))
         except ValueError as error:  # MapFormatError, or an option the map cannot take
             raise InputError(f"{path}: {error}") from error
-        if config.top_k > triplet_map.points.shape[0]:
-            raise InputError(f"{path}: -k {config.top_k} exceeds the map's vertices")
         triplet_map = eqx.tree_at(lambda m: m.config, triplet_map, config)
     else:
         config = triplet_config(args)
         instances, normals = load_map_files(path, config.descriptor.classes, not args.no_rsn)
-        triplet_map = describe_map(instances.points, instances.labels, config, normals, str(path))
+        triplet_map = describe_map(
+            instances.points, instances.labels, config, normals, str(path), args.command
+        )
     return triplet_map, time.perf_counter() - start
 
 
@@ -247,31 +222,6 @@ def check_save_path(path: Path | None) -> None:
     """Before any work: a ``--save-map`` path must name an ``.npz`` file."""
     if path is not None and path.suffix != ".npz":
         raise InputError(f"--save-map {path}: the file name must end in .npz")
-
-
-def expand_scans(paths: Sequence[Path], every: int) -> tuple[list[Path], np.ndarray | None]:
-    """SCAN arguments as scan paths: a sequence folder (``velodyne/*.bin`` + ``labels/``) gives
-    every ``every``-th of its scans. Returns the paths and, when every argument is a sequence
-    with ``poses.txt``, their ground-truth ``T_map_scan`` (else None)."""
-    from jaxloc.io import is_sequence_dir, load_lidar_sequence
-
-    scans, poses = [], []
-    for path in paths:
-        if not is_sequence_dir(path):
-            check_scan_path(path)
-            scans.append(path)
-            poses.append(None)
-            continue
-        try:
-            sequence = load_lidar_sequence(path, require_poses=False)
-        except (ValueError, FileNotFoundError) as error:
-            raise InputError(str(error)) from error
-        chosen = list(sequence.bins[::every])
-        scans += chosen
-        truth = sequence.T_map_scan
-        poses += [None] * len(chosen) if truth is None else list(truth[::every])
-    known = all(pose is not None for pose in poses)
-    return scans, (np.stack(poses) if known else None)
 
 
 def localize_one(triplet_map, scan: ScanInstances):
@@ -293,12 +243,12 @@ def localize_one(triplet_map, scan: ScanInstances):
     return result, max(first - (time.perf_counter() - start), 0.0)
 
 
-def _scan_record(name: str, scan: ScanInstances, result, compile_s: float, T_gt) -> dict:
+def _scan_record(ref: ScanRef, scan: ScanInstances, result, compile_s: float) -> dict:
     from jaxloc.m2loc import localization_errors
 
     counts = {int(c): int(np.sum(scan.labels == c)) for c in np.unique(scan.labels)}
     record = {
-        "scan": name,
+        "scan": str(ref.path),
         "instances": int(len(scan.points)),
         "instances_per_class": {str(c): n for c, n in counts.items()},
         "valid": bool(result.valid),
@@ -310,8 +260,10 @@ def _scan_record(name: str, scan: ScanInstances, result, compile_s: float, T_gt)
         "match_ms": round(result.match_time_ms, 3),
         "compile_s": round(compile_s, 3),
     }
-    if T_gt is not None:
-        rte, rre = localization_errors(result.pose, T_gt)
+    if ref.timestamp is not None:
+        record["timestamp_ns"] = int(ref.timestamp)
+    if ref.T_gt is not None:
+        rte, rre = localization_errors(result.pose, ref.T_gt)
         record["rte_m"], record["rre_deg"] = float(rte), float(rre)
     return record
 
@@ -345,10 +297,12 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
 
     check_config_args(args)
     check_save_path(args.save_map)
+    check_poses_out(args)
     if args.every < 1:
         raise InputError(f"--every must be >= 1, got {args.every}")
-    scans, sequence_poses = expand_scans(args.scans, args.every)
-    T_gt = sequence_poses if args.gt is None else load_poses(args.gt, len(scans))
+    refs = expand_scans(args.scans, args)
+    if args.gt is not None:
+        refs = attach_ground_truth(refs, args.gt)
     triplet_map, build_s = open_map(args.map, args)
     if args.save_map is not None:
         save_triplet_map(triplet_map, args.save_map)
@@ -360,31 +314,34 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
         f"{'with' if has_rsn else 'without'} road normals, "
         f"{'loaded' if args.map.is_file() else 'described'} in {build_s:.1f} s"
     )
-    records = []
-    show_bar = len(scans) > 1 and not args.no_progress
-    for index, scan_path in enumerate(tqdm(scans, unit="scan", disable=not show_bar)):
-        scan = load_scan(scan_path, classes)
+    records, results = [], []
+    show_bar = len(refs) > 1 and not args.no_progress
+    for ref in tqdm(refs, unit="scan", disable=not show_bar):
+        scan = load_scan(ref, classes)
         try:
             result, compile_s = localize_one(triplet_map, scan)
         except ValueError as error:  # duplicate points and the like: a problem of the scan
-            raise InputError(f"{scan_path}: {error}") from error
-        record = _scan_record(
-            str(scan_path), scan, result, compile_s, None if T_gt is None else T_gt[index]
-        )
-        records.append(record)
+            raise InputError(f"{ref.path}: {error}") from error
+        results.append(result)
+        records.append(_scan_record(ref, scan, result, compile_s))
         if not args.json:
-            tqdm.write(_format_record(record))
+            tqdm.write(_format_record(records[-1]))
+    if args.poses_out is not None:
+        write_poses_out(args, refs, results)
     summary = {"map": str(args.map), "map_instances": num_vertices, "map_build_s": build_s}
-    if T_gt is not None:
+    judged = [r for r in records if "rte_m" in r]
+    if judged:
         success = [
             r["valid"] and r["rte_m"] < SUCCESS_RTE_M and r["rre_deg"] < SUCCESS_RRE_DEG
-            for r in records
+            for r in judged
         ]
         summary["success_rate"] = float(np.mean(success))
         say(
             f"success (valid, RTE < {SUCCESS_RTE_M} m, RRE < {SUCCESS_RRE_DEG} deg): "
             f"{sum(success)}/{len(success)}"
         )
+        if len(judged) < len(records):
+            note(args.command, f"{len(records) - len(judged)} scan(s) without ground truth")
     if args.json:
         print(json.dumps({"summary": summary, "scans": records}, indent=2))
     return 0

@@ -9,6 +9,7 @@ import numpy as np
 
 from jaxloc.cli._errors import InputError
 from jaxloc.cli._lidar import check_save_path, describe_map, triplet_config
+from jaxloc.cli._lidar_scans import open_sequence
 
 DESCRIPTION = """\
 Builds a TripletLoc/HeLiPR-format instance map and road-surface-normal map from a labelled
@@ -17,7 +18,8 @@ into instance centroids (0.1 m voxels, 0.5 m clusters of >= 20 voxels), moved to
 and fused across scans within 0.5 m; road points binned into 10 m cells (within 80 m of the
 sensor), a robust plane per cell, cells fused within 3.5 m.
 
-SEQ_DIR is a SemanticKITTI sequence:
+SEQ_DIR is a labelled sequence in one of three layouts (detected; --format forces one).
+A SemanticKITTI sequence:
   SEQ_DIR/velodyne/NNNNNN.bin   float32 x y z intensity (sensor frame)
   SEQ_DIR/labels/NNNNNN.label   uint32: semantic id in the low 16 bits (71 trunk, 80 pole,
                                 81 traffic sign, 40 road), instance in the high 16 bits
@@ -26,7 +28,17 @@ SEQ_DIR is a SemanticKITTI sequence:
 The map frame is then the velodyne frame of the first scan: T_map_scan = inv(Tr) P Tr.
 Or a plain folder: NNN.bin with NNN.label beside them (or velodyne/ + labels/) and a poses.txt of
 T_map_scan rows (12 or 16 numbers), no calib.txt. Scans sort by number (0, 11, 102); line i of
-poses.txt belongs to the i-th scan.
+poses.txt belongs to the i-th scan. Either may have times.txt (seconds per scan, KITTI's) and a
+TUM poses.txt ("t x y z qx qy qz qw"), matched to the scans by time.
+Or a HeLiPR / TripletLoc sequence:
+  SEQ_DIR/LiDAR/<sensor>/<stamp>.bin   Ouster (26-byte points), Velodyne (22), Avia (19), Aeva
+                                       (25 or 29) or TripletLoc's Ouster_filterd; <stamp> in ns
+  SEQ_DIR/labels/<stamp>.label         uint16 SPVNAS class id (8 road, 15 trunk, 17 pole,
+                                       18 traffic sign) + uint16 instance per point (or label/)
+  SEQ_DIR/LiDAR_GT/<Sensor>_gt.txt     lines "stamp x y z qx qy qz qw" (LiDAR to world)
+--sensor picks the scan folder (default: the only one present, else Ouster). A scan is matched
+to the GT line with its exact stamp; scans without one are left out (a note on stderr), GT lines
+without a scan are ignored. The map frame is the GT's world frame.
 
 OUT_DIR receives instances/15.txt, 17.txt, 18.txt (lines "id x y z") and RSN/road_normal.txt
 (lines "x y nx ny nz std_deg"), the format localize-lidar reads. Nothing is written unless the
@@ -38,6 +50,7 @@ examples:
   jaxloc build-lidar-map dataset/sequences/00 maps/kitti00
   jaxloc build-lidar-map dataset/sequences/00 maps/kitti00 --every 10 --save-map kitti00.npz
   jaxloc localize-lidar maps/kitti00 dataset/sequences/00 --every 50
+  jaxloc build-lidar-map HeLiPR/KAIST04 maps/KAIST04 --sensor Ouster --every 30
 
 --save-map FILE also describes the built map (M2Loc, 3 scales, or the localization settings
 given) and saves it, so that localize-lidar loads it in a second instead of describing it again.
@@ -49,7 +62,7 @@ exit status: 0 on success, 2 on missing or malformed files or bad options (one-l
 def run_build_lidar_map(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
-    from jaxloc.io import load_lidar_sequence, save_lidar_maps, save_triplet_map
+    from jaxloc.io import save_lidar_maps, save_triplet_map
     from jaxloc.mapping import MapBuildConfig, build_lidar_maps
 
     if args.every < 1:
@@ -59,7 +72,7 @@ def run_build_lidar_map(args: argparse.Namespace) -> int:
         raise InputError(f"{args.out_dir}: exists and is not a folder")
     start = time.perf_counter()
     try:
-        sequence = load_lidar_sequence(args.seq_dir)
+        sequence = open_sequence(args.seq_dir, args, require_poses=True)
         used = len(sequence.bins[:: args.every])
         with tqdm(total=used, unit="scan", disable=args.no_progress) as bar:
             maps = build_lidar_maps(sequence, MapBuildConfig(every=args.every), bar.update)
@@ -69,15 +82,18 @@ def run_build_lidar_map(args: argparse.Namespace) -> int:
     triplet_map = None
     if args.save_map is not None:  # describe before writing anything: a bad map writes nothing
         config = triplet_config(args)
-        triplet_map = describe_map(instances.points, instances.labels, config, normals, "built")
+        triplet_map = describe_map(
+            instances.points, instances.labels, config, normals, "built", args.command
+        )
     save_lidar_maps(args.out_dir, instances, normals)
     if triplet_map is not None:
         save_triplet_map(triplet_map, args.save_map)
     counts = ", ".join(
         f"{int(np.sum(instances.labels == c))} x {c}" for c in sorted(set(instances.labels))
     )
+    layout = sequence.layout + (f", {sequence.sensor}" if sequence.sensor else "")
     print(
-        f"{args.seq_dir} ({sequence.layout}): {used} of {len(sequence.bins)} scans used -> "
+        f"{args.seq_dir} ({layout}): {used} of {len(sequence.bins)} scans used -> "
         f"{len(instances.points)} instances ({counts}), {len(normals.xy)} road-normal cells, "
         f"in {time.perf_counter() - start:.1f} s; wrote {args.out_dir}/instances/*.txt and "
         f"{args.out_dir}/RSN/road_normal.txt" + (f" and {args.save_map}" if args.save_map else "")

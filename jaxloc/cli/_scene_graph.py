@@ -26,7 +26,9 @@ Each object's mesh is reduced by quadric decimation to about --target-vertices v
 cloud's objects become their convex hulls). Embeddings: --embeddings FILE, text lines
 "key e_1 ... e_d" (key = label name or class id, or object id with --embeddings-by object) or a
 .npy (K, d) indexed by class id / object id; without it, one-hot per class (dimension i = the i-th
-smallest class id, listed in the output).
+smallest class id, listed in the output). The map also stores one embedding per class (one-hot,
+or the mean of the class's objects' vectors with a table by label), the space that query patch
+embeddings made from label images live in (localize-camera --labels).
 """
 
 EPILOG = """\
@@ -70,7 +72,7 @@ def run_build_scene_graph(args: argparse.Namespace) -> int:
     import numpy as np
 
     from jaxloc.io import load_embedding_table, read_3rscan, read_generic, read_scannet, save_scene
-    from jaxloc.mapping import onehot_classes, scene_graph_from_reconstruction
+    from jaxloc.mapping import class_embeddings, onehot_classes, scene_graph_from_reconstruction
 
     if args.target_vertices < 4:
         raise InputError(f"--target-vertices must be >= 4, got {args.target_vertices}")
@@ -87,9 +89,10 @@ def run_build_scene_graph(args: argparse.Namespace) -> int:
         if args.embeddings is not None:
             table = load_embedding_table(args.embeddings, args.embeddings_by)
         scene = scene_graph_from_reconstruction(recon, table, args.target_vertices)
+        classes = class_embeddings(recon, table)
     except ValueError as error:
         raise InputError(str(error)) from None
-    save_scene(scene, args.out)
+    save_scene(scene, args.out, classes)
     labels = np.asarray(scene.labels)[: scene.num_objects]
     print(
         f"{scene.num_objects} objects ({len(np.unique(labels))} classes), "
@@ -100,4 +103,6 @@ def run_build_scene_graph(args: argparse.Namespace) -> int:
         print(f"embeddings: one-hot per class, dimension i = class id {classes}")
     else:
         print(f"embeddings: {scene.embeddings.shape[1]}-d from {args.embeddings}")
+    if classes is None:
+        print("no class embeddings (a table by object): label images cannot be used as queries")
     return 0

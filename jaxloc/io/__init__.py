@@ -4,65 +4,103 @@ file; writers write atomically (a temporary file, then a rename). Nothing is eve
 
 Camera (SG2Loc):
 
-* :mod:`~jaxloc.io.camera_folder`: query sequences from a folder of RGB-D frames (ScanNet export).
+* :mod:`~jaxloc.io.camera_sequence`: query sequences from camera recordings, in any of
+  :mod:`~jaxloc.io.scannet_export` (ScanNet's export folder), :mod:`~jaxloc.io.scannet_sens`
+  (ScanNet ``.sens`` files) and :mod:`~jaxloc.io.rscan_sequence` (3RScan sequences), their frames
+  as :mod:`~jaxloc.io.camera_frames` defines them; patch embeddings from label images
+  (:mod:`~jaxloc.io.label_images`).
 * :mod:`~jaxloc.io.scannet`, :mod:`~jaxloc.io.rscan`, :mod:`~jaxloc.io.ply`: labelled
   reconstructions (ScanNet v2, 3RScan, any labelled PLY), as
   :class:`~jaxloc.io.reconstruction.LabelledReconstruction`.
 * :mod:`~jaxloc.io.embedding_table`: object embeddings by label or object id.
 * :mod:`~jaxloc.io.meshes`: a scene graph from mesh files and a text object list.
 * :mod:`~jaxloc.io.scene_map`: the scene graph's own map file (:func:`save_scene`,
-  :func:`load_scene`).
+  :func:`load_scene`, and the map's class embeddings).
 
 LiDAR (M2Loc):
 
 * :mod:`~jaxloc.io.semantickitti`: SemanticKITTI scans (``.bin`` / ``.label``).
-* :mod:`~jaxloc.io.lidar_sequence`: labelled scan sequences (SemanticKITTI layout, plain layout).
+* :mod:`~jaxloc.io.lidar_sequence`: labelled scan sequences (SemanticKITTI, plain and HeLiPR
+  layouts), each scan read by :func:`load_sequence_scan`.
+* :mod:`~jaxloc.io.helipr`: HeLiPR / TripletLoc scans (four sensors' point records), SPVNAS
+  labels and ground truth.
+* :mod:`~jaxloc.io.poses`: pose files (KITTI, 4x4 rows, TUM) in and out (:func:`read_pose_file`,
+  :func:`write_tum`, :func:`write_kitti`).
 * :mod:`~jaxloc.io.instance_maps`: HeLiPR / TripletLoc instance maps and road normals (text).
 * :mod:`~jaxloc.io.lidar_map`: the described M2Loc map's own file (:func:`save_triplet_map`,
   :func:`load_triplet_map`).
 """
 
-from jaxloc.io.camera_folder import CameraFolder, load_camera_folder
+from jaxloc.io.camera_sequence import (
+    CAMERA_FORMATS,
+    CameraRecording,
+    detect_camera_format,
+    load_camera_sequence,
+    open_camera_recording,
+)
 from jaxloc.io.embedding_table import EmbeddingTable, load_embedding_table
 from jaxloc.io.errors import MapFormatError
+from jaxloc.io.helipr import load_helipr_scan, read_helipr_gt
 from jaxloc.io.instance_maps import (
     InstanceMap,
     load_instance_map,
     load_road_normals,
     save_lidar_maps,
 )
+from jaxloc.io.label_images import patch_embeddings_from_labels, read_label_image
 from jaxloc.io.lidar_map import FORMAT_VERSION as TRIPLET_MAP_FORMAT_VERSION
 from jaxloc.io.lidar_map import load_triplet_map, save_triplet_map
 from jaxloc.io.lidar_sequence import (
     LidarSequence,
+    detect_layout,
     is_sequence_dir,
     load_lidar_sequence,
+    load_sequence_scan,
     read_kitti_calibration,
-    read_poses,
 )
 from jaxloc.io.meshes import load_meshes, load_objects_file, load_scene_from_files
 from jaxloc.io.ply import read_generic
+from jaxloc.io.poses import PoseFile, read_pose_file, read_poses, write_kitti, write_tum
 from jaxloc.io.reconstruction import LabelledReconstruction, ReconstructionObject
 from jaxloc.io.rscan import read_3rscan
+from jaxloc.io.rscan_sequence import open_rscan_sequence, read_rescan_transform
 from jaxloc.io.scannet import read_label_table, read_scannet
-from jaxloc.io.scene_map import load_scene, save_scene
+from jaxloc.io.scannet_export import open_scannet_export
+from jaxloc.io.scannet_sens import open_sens, read_sens_header
+from jaxloc.io.scene_map import ClassEmbeddings, load_class_embeddings, load_scene, save_scene
 from jaxloc.io.semantickitti import LabelledScan, load_semantickitti_scan, semantickitti_class_ids
 
 __all__ = [
     "TRIPLET_MAP_FORMAT_VERSION",
-    "CameraFolder",
+    "CAMERA_FORMATS",
+    "CameraRecording",
+    "ClassEmbeddings",
     "EmbeddingTable",
     "InstanceMap",
     "LabelledReconstruction",
     "LabelledScan",
     "LidarSequence",
+    "PoseFile",
     "MapFormatError",
     "ReconstructionObject",
+    "detect_layout",
     "is_sequence_dir",
-    "load_camera_folder",
+    "detect_camera_format",
+    "load_camera_sequence",
+    "load_class_embeddings",
+    "open_camera_recording",
+    "open_rscan_sequence",
+    "open_scannet_export",
+    "open_sens",
+    "patch_embeddings_from_labels",
+    "read_label_image",
+    "read_rescan_transform",
+    "read_sens_header",
     "load_embedding_table",
     "load_instance_map",
+    "load_helipr_scan",
     "load_lidar_sequence",
+    "load_sequence_scan",
     "load_meshes",
     "load_objects_file",
     "load_road_normals",
@@ -72,12 +110,16 @@ __all__ = [
     "load_triplet_map",
     "read_3rscan",
     "read_generic",
+    "read_helipr_gt",
     "read_kitti_calibration",
     "read_label_table",
+    "read_pose_file",
     "read_poses",
     "read_scannet",
     "save_lidar_maps",
     "save_scene",
     "save_triplet_map",
     "semantickitti_class_ids",
+    "write_kitti",
+    "write_tum",
 ]

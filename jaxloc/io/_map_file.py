@@ -2,12 +2,36 @@
 
 from __future__ import annotations
 
+import struct
+import tokenize
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
 
 from jaxloc.io.errors import MapFormatError
+
+#: What reading a damaged ``.npz`` can raise: a broken zip structure or deflate stream, an
+#: unsupported compression method or an "encrypted" flag from a flipped header bit, a bad struct
+#: field, a size that cannot be allocated, an array header that does not parse.
+_CORRUPT = (
+    zipfile.BadZipFile,
+    zipfile.LargeZipFile,
+    zlib.error,
+    EOFError,
+    OSError,
+    ValueError,
+    KeyError,
+    NotImplementedError,
+    RuntimeError,
+    struct.error,
+    SyntaxError,
+    tokenize.TokenError,
+    UnicodeDecodeError,
+    OverflowError,
+    MemoryError,
+)
 
 
 def read_map_file(path: Path, format_name: str, version: int, what: str) -> dict[str, np.ndarray]:
@@ -23,8 +47,10 @@ def read_map_file(path: Path, format_name: str, version: int, what: str) -> dict
             content = {key: data[key] for key in data.files}
     except FileNotFoundError:
         raise
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as err:
-        raise MapFormatError(f"{path}: not a readable jaxloc map ({err})") from err
+    except _CORRUPT as err:
+        raise MapFormatError(
+            f"{path}: not a readable jaxloc map ({type(err).__name__}: {err})"
+        ) from err
     found = content.get("format", np.array(""))
     if found.shape != () or str(found) != format_name:
         raise MapFormatError(f"{path}: not a jaxloc {what} file")

@@ -2,9 +2,23 @@
 
 from __future__ import annotations
 
+import tokenize
 from pathlib import Path
 
 import numpy as np
+
+#: What numpy can raise on a damaged ``.npy`` (an empty or cut file, a broken header dict, a
+#: shape that cannot be allocated).
+NPY_ERRORS = (
+    ValueError,
+    EOFError,
+    OSError,
+    SyntaxError,
+    tokenize.TokenError,
+    UnicodeDecodeError,
+    MemoryError,
+    OverflowError,
+)
 
 
 def read_numeric_npy(path: Path, ndim: int, layout: str, what: str) -> np.ndarray:
@@ -20,8 +34,10 @@ def read_numeric_npy(path: Path, ndim: int, layout: str, what: str) -> np.ndarra
         raise FileNotFoundError(2, f"No such file ({what})", str(path))
     try:
         array = np.load(path, allow_pickle=False)
-    except ValueError as err:
-        raise ValueError(f"{path}: not a numeric .npy array ({err})") from None
+    except NPY_ERRORS as err:
+        raise ValueError(
+            f"{path}: not a numeric .npy array ({type(err).__name__}: {err})"
+        ) from None
     if array.ndim != ndim or not np.issubdtype(array.dtype, np.number):
         raise ValueError(f"{path}: expected a {layout} numeric array, got shape {array.shape}")
     if not np.all(np.isfinite(array)):

@@ -33,12 +33,13 @@ def load_instance_map(map_dir: str | Path, classes: tuple[int, ...] = GRAPH_CLAS
 
     Raises:
         FileNotFoundError: a class file is missing.
-        ValueError: a malformed line (wrong field count, non-number, non-finite), with file:line.
+        ValueError: a malformed line (wrong field count, non-number, non-finite), with file:line,
+            or an instance id that is not an integer (naming the file).
     """
     points, labels, ids = [], [], []
     for class_id in classes:
         table = read_float_table(Path(map_dir) / "instances" / f"{class_id}.txt", 4, "id x y z")
-        if np.any(table[:, 0] != np.round(table[:, 0])):
+        if np.any(table[:, 0] != np.round(table[:, 0])) or np.any(np.abs(table[:, 0]) > 2**53):
             raise ValueError(f"{map_dir}/instances/{class_id}.txt: non-integer instance id")
         points.append(table[:, 1:4])
         labels.append(np.full(table.shape[0], class_id, np.int32))
@@ -50,13 +51,15 @@ def load_road_normals(map_dir: str | Path) -> RoadNormals:
     """Read ``<map_dir>/RSN/road_normal.txt`` (lines ``x y nx ny nz std_deg``), normals unit-scaled.
 
     Raises:
-        ValueError: a malformed line, a zero normal, or a negative standard deviation.
+        ValueError: a malformed line, a zero (or overflowing) normal, or a negative standard
+            deviation.
     """
     path = Path(map_dir) / "RSN" / "road_normal.txt"
     table = read_float_table(path, 6, "x y nx ny nz std_deg")
-    norms = np.linalg.norm(table[:, 2:5], axis=1)
-    if np.any(norms < 1e-6):
-        raise ValueError(f"{path}: zero-length road normal")
+    with np.errstate(over="ignore"):
+        norms = np.linalg.norm(table[:, 2:5], axis=1)
+    if np.any(norms < 1e-6) or not np.all(np.isfinite(norms)):
+        raise ValueError(f"{path}: zero-length or overflowing road normal")
     if np.any(table[:, 5] < 0):
         raise ValueError(f"{path}: negative normal standard deviation")
     return RoadNormals(table[:, 0:2], table[:, 2:5] / norms[:, None], table[:, 5])

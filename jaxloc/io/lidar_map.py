@@ -23,7 +23,7 @@ from jaxloc.io._atomic import write_npz_atomic
 from jaxloc.io._map_file import read_map_file
 from jaxloc.io.errors import MapFormatError
 from jaxloc.lsq import RobustLoss
-from jaxloc.m2loc import DescriptorConfig, TripletConfig, TripletMap, map_grid
+from jaxloc.m2loc import DescriptorConfig, TripletConfig, TripletMap, fit_config_to_map, map_grid
 
 FORMAT_NAME = "jaxloc.TripletMap"
 FORMAT_VERSION = 1
@@ -59,6 +59,8 @@ def _config_to_dict(module) -> dict:
 
 
 def _config_from_dict(cls, values: dict):
+    if not isinstance(values, dict):
+        raise TypeError(f"{cls.__name__} must be a JSON object, got {type(values).__name__}")
     names = {field.name for field in dataclasses.fields(cls)}
     unknown = set(values) - names
     if unknown:
@@ -105,7 +107,6 @@ def _check_arrays(path: Path, content: dict[str, np.ndarray], config: TripletCon
     classes = content["classes"]
     checks = [
         (n >= 3, f"{n} vertices (at least 3 needed)"),
-        (config.top_k <= n, f"top_k={config.top_k} exceeds the {n} vertices"),
         (classes.shape == (n,), "'classes' does not match 'points'"),
         (
             np.all((classes >= 0) & (classes < len(config.descriptor.classes))),
@@ -140,14 +141,18 @@ def load_triplet_map(path: str | os.PathLike) -> TripletMap:
         FileNotFoundError: no such file.
         MapFormatError: a corrupt, truncated or foreign file, another format version, a bad
             configuration, or arrays with wrong dtypes or shapes, NaN/inf or inconsistent values.
+
+    Warns:
+        SmallMapWarning: the saved ``top_k`` exceeds the map's vertices (it is clamped).
     """
     path = Path(path)
     content = read_map_file(path, FORMAT_NAME, FORMAT_VERSION, "triplet map")
     try:
         config = _config_from_dict(TripletConfig, json.loads(str(content["config"])))
-    except (KeyError, TypeError, ValueError) as err:  # JSON, unknown fields, config checks
+    except Exception as err:  # JSON, unknown fields, wrong types, config checks
         raise MapFormatError(f"{path}: bad configuration ({err})") from err
     _check_arrays(path, content, config)
+    config = fit_config_to_map(config, content["points"].shape[0], stacklevel=2)
     arrays = {name: jnp.asarray(content[name]) for name in _ARRAYS if name != "has_rsn"}
     grid = map_grid(arrays["points"], arrays["classes"], config.verify_radius)
     return TripletMap(**arrays, has_rsn=bool(content["has_rsn"]), config=config, grid=grid)

@@ -1,4 +1,4 @@
-"""Labelled LiDAR sequences on disk: the SemanticKITTI layout and a plain one.
+"""Labelled LiDAR sequences on disk: the SemanticKITTI layout, a plain one, and HeLiPR's.
 
 SemanticKITTI (checked against the dataset's documentation and its API code, PRBonn's
 ``semantic-kitti-api``, ``generate_sequential.py``: ``parse_calibration`` / ``parse_poses``)::
@@ -9,13 +9,25 @@ SemanticKITTI (checked against the dataset's documentation and its API code, PRB
                                   (cam0) in the frame of the first cam0, row-major
     SEQ_DIR/calib.txt             lines "KEY: 12 numbers" (P0..P3, Tr); Tr maps velodyne points to
                                   cam0 points
+    SEQ_DIR/times.txt             optional: one time per scan, seconds (KITTI's)
 
     T_map_scan = inv(Tr) @ P @ Tr   (the map frame is the velodyne frame of the first scan)
 
-Plain: ``NNN.bin`` with ``NNN.label`` in ``SEQ_DIR`` (or ``velodyne/`` + ``labels/``) and a
-``poses.txt`` of ``T_map_scan`` rows (12 numbers: 3x4, or 16: 4x4, row-major) and no
-``calib.txt``. Scans are ordered by their file names, numerically when the names are numbers
-(``0, 11, 102``); line i of ``poses.txt`` is the pose of the i-th scan.
+Plain: ``NNN.bin`` with ``NNN.label`` in ``SEQ_DIR`` (or ``velodyne/`` + ``labels/``), a
+``poses.txt`` of ``T_map_scan`` and no ``calib.txt``. Scans are ordered by their file names,
+numerically when the names are numbers (``0, 11, 102``). Labels of both are raw SemanticKITTI
+ids (converted with :func:`jaxloc.io.semantickitti.semantickitti_class_ids`).
+
+HeLiPR / TripletLoc (:mod:`jaxloc.io.helipr`): ``LiDAR/<sensor>/<stamp>.bin``,
+``labels/<stamp>.label`` (SPVNAS class ids, used as they are), ``LiDAR_GT/<Sensor>_gt.txt``;
+``T_map_scan`` is the GT's LiDAR -> world pose (the map frame is the GT's world frame).
+
+``poses.txt`` may be KITTI (12 numbers a line), 4x4 (16) or TUM (8: ``t x y z qx qy qz qw``;
+:mod:`jaxloc.io.poses`). A pose file with timestamps is matched to scans with timestamps (HeLiPR's
+file names, or ``times.txt``) by time: HeLiPR's GT by the exact integer nanosecond stamp, a TUM
+file in seconds within 1 ms. Then a scan without a pose is left out of the sequence (listed in
+``LidarSequence.skipped``) and a pose without a scan is ignored (counted in ``unused_poses``).
+Otherwise poses belong to scans by order: line i to the i-th scan, and the counts must agree.
 """
 
 from __future__ import annotations
@@ -26,8 +38,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxloc.io._rigid import rigid_mask
+from jaxloc.io import helipr
 from jaxloc.io._text import data_lines, parse_finite_floats
+from jaxloc.io.poses import PoseFile, check_rigid, match_timestamps, read_pose_file, seconds_to_ns
+from jaxloc.io.semantickitti import LabelledScan, load_semantickitti_scan
+
+#: The layouts :func:`load_lidar_sequence` reads.
+LAYOUTS = ("semantickitti", "plain", "helipr")
 
 
 class LidarSequence(NamedTuple):
@@ -37,7 +54,17 @@ class LidarSequence(NamedTuple):
         root: the sequence folder.
         bins: per scan the ``.bin`` path; labels: the matching ``.label`` paths.
         T_map_scan: (N, 4, 4) float64 scan-to-map poses, or None when the folder has no poses.
-        layout: "semantickitti" (``calib.txt`` present, camera poses converted) or "plain".
+        layout: "semantickitti" (``calib.txt`` present, camera poses converted), "plain" or
+            "helipr".
+        timestamps: (N,) int64 nanoseconds of the scans (HeLiPR's file names, ``times.txt``), or
+            None.
+        point_format: the records of the ``.bin`` files: "kitti" (float32 x y z intensity) or a
+            HeLiPR sensor's ("ouster", "velodyne", "avia", "aeva"; :mod:`jaxloc.io.helipr`).
+        label_ids: "semantickitti" (raw SemanticKITTI ids, converted) or "spvnas" (jaxloc's
+            class ids already, TripletLoc's labels).
+        sensor: the HeLiPR scan folder read (e.g. "Ouster"), else None.
+        skipped: scans left out because the pose file has no pose at their time.
+        unused_poses: lines of the pose file that match no scan.
     """
 
     root: Path
@@ -45,50 +72,45 @@ class LidarSequence(NamedTuple):
     labels: tuple[Path, ...]
     T_map_scan: np.ndarray | None
     layout: str
+    timestamps: np.ndarray | None = None
+    point_format: str = "kitti"
+    label_ids: str = "semantickitti"
+    sensor: str | None = None
+    skipped: tuple[Path, ...] = ()
+    unused_poses: int = 0
 
 
 def scan_order_key(path: Path) -> tuple:
     """Sort key of a scan file: numeric stems as numbers (``0 < 11 < 102``), then by name."""
     stem = path.stem
-    return (0, int(stem), stem) if stem.isdigit() else (1, 0, stem)
+    return (0, int(stem), stem) if stem.isascii() and stem.isdigit() else (1, 0, stem)
+
+
+def detect_layout(path: str | os.PathLike) -> str | None:
+    """The layout of a sequence folder: "semantickitti" (``velodyne/*.bin`` and ``calib.txt``),
+    "helipr" (``LiDAR/<sensor>/*.bin``), "plain" (``velodyne/*.bin`` or ``*.bin``), or None."""
+    root = Path(path)
+    if not root.is_dir():
+        return None
+    velodyne = (root / "velodyne").is_dir() and any((root / "velodyne").glob("*.bin"))
+    if velodyne and (root / "calib.txt").is_file():
+        return "semantickitti"
+    if helipr.is_helipr_dir(root):
+        return "helipr"
+    if velodyne or any(root.glob("*.bin")):
+        return "plain"
+    return None
 
 
 def is_sequence_dir(path: str | os.PathLike) -> bool:
-    """Whether ``path`` is a folder with ``velodyne/*.bin`` scans (a SemanticKITTI sequence)."""
-    folder = Path(path) / "velodyne"
-    return folder.is_dir() and any(folder.glob("*.bin"))
-
-
-def check_rigid(poses: np.ndarray, path: str | os.PathLike) -> None:
-    """Raise ``ValueError`` naming ``path`` and the 1-based row unless every (4, 4) pose is rigid
-    (:func:`jaxloc.io._rigid.rigid_mask`)."""
-    bad = np.flatnonzero(~rigid_mask(poses))
-    if bad.size:
-        raise ValueError(f"{path}: pose {bad[0] + 1} is not rigid (a rotation and a translation)")
-
-
-def read_poses(path: str | os.PathLike) -> np.ndarray:
-    """Poses, one per non-blank line: 12 numbers (3x4) or 16 (4x4), row-major.
-
-    Returns:
-        (N, 4, 4) float64 rigid transforms.
-
-    Raises:
-        ValueError: a line with another field count, a non-number or NaN/inf (file:line), or a
-            pose that is not rigid (naming the file and the pose).
-    """
-    rows = []
-    for line_number, line in data_lines(path, comments=True):
-        fields = line.split()
-        where = f"{path}:{line_number}"
-        if len(fields) not in (12, 16):
-            raise ValueError(f"{where}: expected 12 or 16 numbers (a pose), got {len(fields)}")
-        pose = np.eye(4)
-        pose.flat[: len(fields)] = parse_finite_floats(fields, where, "pose")
-        rows.append(pose)
-    poses = np.asarray(rows, np.float64).reshape(-1, 4, 4)
-    check_rigid(poses, path)
-    return poses
+    """Whether ``path`` is a folder of scans in a sequence layout: ``velodyne/*.bin``
+    (SemanticKITTI, plain) or ``LiDAR/<sensor>/*.bin`` (HeLiPR). A folder of loose ``*.bin``
+    files is a plain sequence too, but is not recognised here (force it with
+    ``load_lidar_sequence(..., layout="plain")``)."""
+    layout = detect_layout(path)
+    return layout in ("semantickitti", "helipr") or (
+        layout == "plain" and (Path(path) / "velodyne").is_dir()
+    )
 
 
 def read_kitti_calibration(path: str | os.PathLike) -> dict[str, np.ndarray]:
@@ -120,7 +142,57 @@ def velodyne_to_camera(path: str | os.PathLike) -> np.ndarray:
     raise ValueError(f"{path}: no 'Tr:' line (the velodyne-to-camera transform)")
 
 
-def _scan_files(root: Path) -> tuple[list[Path], list[Path]]:
+def read_times(path: str | os.PathLike, count: int) -> np.ndarray:
+    """KITTI's ``times.txt``: one time in seconds per scan, as (count,) int64 nanoseconds.
+
+    Raises:
+        ValueError: naming ``file:line``: not one number a line, NaN/inf; or another count.
+    """
+    stamps = []
+    for line_number, line in data_lines(path, comments=True):
+        fields = line.split()
+        if len(fields) != 1:
+            raise ValueError(
+                f"{path}:{line_number}: expected one time (seconds), got {line[:60]!r}"
+            )
+        stamps.append(seconds_to_ns(fields[0], f"{path}:{line_number}"))
+    if len(stamps) != count:
+        raise ValueError(f"{path}: {len(stamps)} times for {count} scans")
+    return np.asarray(stamps, np.int64)
+
+
+def assign_poses(
+    found: PoseFile, scan_stamps: np.ndarray | None, num_scans: int, path: str | os.PathLike
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Poses of a pose file for ``num_scans`` scans: by time when both have timestamps (exact for
+    stamps in nanoseconds, within 1 ms for seconds; :meth:`PoseFile.match_tolerance_ns`), else
+    by order (then the counts must agree).
+
+    Returns:
+        ``poses`` (num_scans, 4, 4) float64 (identity where unmatched), ``matched``
+        (num_scans,) bool and the number of poses of the file that match no scan.
+
+    Raises:
+        ValueError: naming ``path``: another count by order, or no scan matched by time.
+    """
+    if found.timestamps is None or scan_stamps is None:
+        if len(found.poses) != num_scans:
+            raise ValueError(f"{path}: {len(found.poses)} poses for {num_scans} scans")
+        return found.poses, np.ones(num_scans, bool), 0
+    index = match_timestamps(scan_stamps, found.timestamps, found.match_tolerance_ns())
+    matched = index >= 0
+    if num_scans and not matched.any():
+        raise ValueError(
+            f"{path}: no pose has the time of a scan (scans from {scan_stamps.min()} to "
+            f"{scan_stamps.max()} ns, poses from {found.timestamps.min()} to "
+            f"{found.timestamps.max()} ns)"
+        )
+    poses = np.tile(np.eye(4), (num_scans, 1, 1))
+    poses[matched] = found.poses[index[matched]]
+    return poses, matched, len(found.poses) - len(np.unique(index[matched]))
+
+
+def _kitti_scan_files(root: Path) -> tuple[list[Path], list[Path]]:
     if (root / "velodyne").is_dir():
         bins = sorted((root / "velodyne").glob("*.bin"), key=scan_order_key)
         labels = [root / "labels" / path.with_suffix(".label").name for path in bins]
@@ -129,38 +201,145 @@ def _scan_files(root: Path) -> tuple[list[Path], list[Path]]:
         labels = [path.with_suffix(".label") for path in bins]
     if not bins:
         raise ValueError(f"{root}: no scans (expected velodyne/*.bin or *.bin)")
-    for label in labels:
-        if not label.is_file():
-            raise FileNotFoundError(f"{label}: missing label file")
     return bins, labels
 
 
-def load_lidar_sequence(seq_dir: str | os.PathLike, require_poses: bool = True) -> LidarSequence:
+def _check_labels(labels: list[Path]) -> None:
+    for label in labels:
+        if not label.is_file():
+            raise FileNotFoundError(f"{label}: missing label file")
+
+
+def _select(
+    sequence: LidarSequence, keep: np.ndarray, skipped: list[Path], unused: int
+) -> LidarSequence:
+    def pick(items):
+        return tuple(item for item, k in zip(items, keep, strict=True) if k)
+
+    return sequence._replace(
+        bins=pick(sequence.bins),
+        labels=pick(sequence.labels),
+        T_map_scan=None if sequence.T_map_scan is None else sequence.T_map_scan[keep],
+        timestamps=None if sequence.timestamps is None else sequence.timestamps[keep],
+        skipped=tuple(skipped),
+        unused_poses=unused,
+    )
+
+
+def _with_poses(sequence: LidarSequence, found: PoseFile, path: Path) -> LidarSequence:
+    poses, matched, unused = assign_poses(found, sequence.timestamps, len(sequence.bins), path)
+    sequence = sequence._replace(T_map_scan=poses, unused_poses=unused)
+    if matched.all():
+        return sequence
+    skipped = [scan for scan, ok in zip(sequence.bins, matched, strict=True) if not ok]
+    return _select(sequence, matched, skipped, unused)
+
+
+def _kitti_sequence(root: Path, layout: str, require_poses: bool) -> LidarSequence:
+    bins, labels = _kitti_scan_files(root)
+    _check_labels(labels)
+    times = root / "times.txt"
+    stamps = read_times(times, len(bins)) if times.is_file() else None
+    sequence = LidarSequence(root, tuple(bins), tuple(labels), None, layout, stamps)
+    poses_path = root / "poses.txt"
+    if not poses_path.is_file():
+        if require_poses:
+            raise FileNotFoundError(f"{poses_path}: missing poses (one per scan)")
+        return sequence
+    sequence = _with_poses(sequence, read_pose_file(poses_path), poses_path)
+    if layout == "semantickitti":
+        tr = velodyne_to_camera(root / "calib.txt")
+        sequence = sequence._replace(T_map_scan=np.linalg.inv(tr) @ sequence.T_map_scan @ tr)
+    return sequence
+
+
+def _helipr_sequence(root: Path, sensor: str | None, require_poses: bool) -> LidarSequence:
+    sensor = helipr.choose_sensor(root, sensor)
+    folder = root / "LiDAR" / sensor
+    # hidden files (macOS "._<stamp>.bin" resource forks in unpacked archives) are not scans
+    bins = sorted(
+        (p for p in folder.glob("*.bin") if not p.name.startswith(".")), key=scan_order_key
+    )
+    if not bins:
+        raise ValueError(f"{folder}: no scans (<stamp>.bin)")
+    stamps = np.array([helipr.scan_stamp(path) for path in bins], np.int64)  # sorted, as bins
+    labels_dir = helipr.label_folder(root)
+    labels = [labels_dir / path.with_suffix(".label").name for path in bins]
+    sequence = LidarSequence(
+        root,
+        tuple(bins),
+        tuple(labels),
+        None,
+        "helipr",
+        stamps,
+        helipr.SENSOR_FORMATS[sensor],
+        "spvnas",
+        sensor,
+    )
+    gt_path = root / "LiDAR_GT" / helipr.GT_FILES[sensor]
+    if gt_path.is_file():
+        gt = helipr.read_helipr_gt(gt_path)
+        found = PoseFile(gt.T_world_lidar, gt.stamps, "tum", "ns")
+        sequence = _with_poses(sequence, found, gt_path)
+    elif require_poses:
+        raise FileNotFoundError(
+            f"{gt_path}: missing ground-truth poses ('stamp x y z qx qy qz qw')"
+        )
+    _check_labels(list(sequence.labels))
+    return sequence
+
+
+def load_lidar_sequence(
+    seq_dir: str | os.PathLike,
+    require_poses: bool = True,
+    layout: str | None = None,
+    sensor: str | None = None,
+) -> LidarSequence:
     """Find the scans of a sequence folder and read its poses (see the module docstring).
 
     Args:
         seq_dir: the sequence folder.
-        require_poses: raise when ``poses.txt`` is missing (else ``T_map_scan`` is None).
+        require_poses: raise when the folder has no pose file (else ``T_map_scan`` is None).
+        layout: "semantickitti", "plain" or "helipr"; None detects it (:func:`detect_layout`).
+        sensor: the HeLiPR scan folder (``LiDAR/<sensor>/``, case-insensitive); None takes the
+            only one present, else Ouster (:func:`jaxloc.io.helipr.choose_sensor`).
 
     Raises:
-        FileNotFoundError: no such folder, a scan without its label file, no ``poses.txt``.
-        ValueError: no scans, a malformed ``poses.txt`` or ``calib.txt``, or a pose count that
-            differs from the scan count (each naming the file).
+        FileNotFoundError: no such folder, a scan without its label file, no pose file.
+        ValueError: no scans, an unknown layout, a malformed pose, calibration or times file, a
+            pose count that differs from the scan count, poses whose times match no scan (each
+            naming the file).
     """
     root = Path(seq_dir)
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: no such sequence folder")
-    bins, labels = _scan_files(root)
-    poses_path, calib_path = root / "poses.txt", root / "calib.txt"
-    layout = "semantickitti" if calib_path.is_file() else "plain"
-    if not poses_path.is_file():
-        if require_poses:
-            raise FileNotFoundError(f"{poses_path}: missing poses (one per scan)")
-        return LidarSequence(root, tuple(bins), tuple(labels), None, layout)
-    poses = read_poses(poses_path)
-    if len(poses) != len(bins):
-        raise ValueError(f"{poses_path}: {len(poses)} poses for {len(bins)} scans")
-    if layout == "semantickitti":
-        tr = velodyne_to_camera(calib_path)
-        poses = np.linalg.inv(tr) @ poses @ tr
-    return LidarSequence(root, tuple(bins), tuple(labels), poses, layout)
+    if layout is None:
+        layout = detect_layout(root) or "plain"
+    if layout == "helipr":
+        return _helipr_sequence(root, sensor, require_poses)
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown sequence layout {layout!r}; expected one of {LAYOUTS}")
+    if layout == "semantickitti" and not (root / "calib.txt").is_file():
+        raise FileNotFoundError(f"{root / 'calib.txt'}: missing (the SemanticKITTI layout)")
+    return _kitti_sequence(root, layout, require_poses)
+
+
+def load_sequence_scan(sequence: LidarSequence, index: int) -> LabelledScan:
+    """Scan ``index`` of ``sequence`` as a :class:`LabelledScan` (class ids), whatever the layout:
+    SemanticKITTI records and raw ids, or a HeLiPR sensor's records and SPVNAS ids.
+
+    Raises:
+        FileNotFoundError: a missing file.
+        ValueError: a malformed scan or label file (naming it).
+    """
+    if sequence.point_format == "kitti" and sequence.label_ids == "semantickitti":
+        return load_semantickitti_scan(sequence.bins[index], sequence.labels[index])
+    if sequence.label_ids != "spvnas" or sequence.point_format == "kitti":
+        raise ValueError(
+            f"{sequence.root}: unsupported scan format {sequence.point_format!r} with "
+            f"{sequence.label_ids!r} labels"
+        )
+    stamp = None if sequence.timestamps is None else int(sequence.timestamps[index])
+    return helipr.load_helipr_scan(
+        sequence.bins[index], sequence.labels[index], sequence.point_format, stamp
+    )

@@ -30,28 +30,36 @@ from jaxloc.io.reconstruction import (
 SCANNET_LABEL_TABLE = "scannetv2-labels.combined.tsv"
 
 
-def read_label_table(path: PathLike, column: str = "nyu40id") -> dict[str, int]:
-    """ScanNet's ``scannetv2-labels.combined.tsv``: raw category name -> integer class id.
+def read_label_table(
+    path: PathLike, column: str = "nyu40id", key: str = "raw_category"
+) -> dict[str, int]:
+    """ScanNet's ``scannetv2-labels.combined.tsv``: ``key`` column -> integer class id.
 
     Args:
         path: the tab-separated file with a header row.
         column: the class-id column (``nyu40id``, the NYU40 classes; ``id``, ScanNet's own ids).
+        key: the column looked up: ``raw_category`` (the aggregation files' label names) or
+            ``id`` (the raw label ids of ScanNet's 2D label images, as text).
 
     Raises:
-        FileNotFoundError, ValueError: a missing file, a missing column, a non-integer id.
+        FileNotFoundError, ValueError: a missing file, a missing column, a non-integer id, not
+            UTF-8 text.
     """
     path = require_file(Path(path))
-    with path.open(encoding="utf-8", newline="") as handle:
-        rows = list(csv.DictReader(handle, delimiter="\t"))
+    try:
+        with path.open(encoding="utf-8", newline="") as handle:
+            rows = list(csv.DictReader(handle, delimiter="\t"))
+    except (UnicodeDecodeError, csv.Error) as err:
+        raise ValueError(f"{path}: not a readable tab-separated file ({err})") from None
     table: dict[str, int] = {}
     for line, row in enumerate(rows, start=2):
-        if "raw_category" not in row or column not in row:
-            raise ValueError(f"{path}: needs the columns 'raw_category' and {column!r}")
+        if key not in row or column not in row:
+            raise ValueError(f"{path}: needs the columns {key!r} and {column!r}")
         try:
             class_id = int(row[column])
         except (TypeError, ValueError):
             raise ValueError(f"{path}:{line}: {column} {row[column]!r} is not an integer") from None
-        table[row["raw_category"]] = class_id
+        table[str(row[key]).strip()] = class_id
     return table
 
 

@@ -1,9 +1,16 @@
-"""The scene graph's map file: one versioned ``.npz``, written atomically, loaded without pickle."""
+"""The scene graph's map file: one versioned ``.npz``, written atomically, loaded without pickle.
+
+Besides the scene graph, the file may hold the map's class embeddings (:class:`ClassEmbeddings`:
+one embedding per semantic class id, e.g. one-hot), the space query patch embeddings made from
+label images live in (:mod:`jaxloc.io.label_images`). Files without them (written before they
+existed, or maps whose embeddings are per object) load unchanged.
+"""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -28,11 +35,49 @@ _SAVED = {
 }
 
 
-def save_scene(scene: SceneGraph, path: str | os.PathLike) -> None:
+class ClassEmbeddings(NamedTuple):
+    """One embedding per semantic class of a map.
+
+    Attributes:
+        class_ids: (K,) int64 distinct class ids (>= 0), sorted.
+        vectors: (K, d) float32 unit-norm embeddings, row k for ``class_ids[k]``, in the map's
+            embedding space.
+    """
+
+    class_ids: np.ndarray
+    vectors: np.ndarray
+
+    @staticmethod
+    def onehot(class_ids) -> ClassEmbeddings:
+        """One-hot embeddings of the distinct ``class_ids``: dimension k = the k-th smallest."""
+        ids = np.unique(np.asarray(class_ids, np.int64))
+        return ClassEmbeddings(ids, np.eye(ids.size, dtype=np.float32))
+
+    def check(self, where: str = "class embeddings") -> ClassEmbeddings:
+        """``self`` if well formed, else ValueError naming ``where``."""
+        ids, vectors = np.asarray(self.class_ids), np.asarray(self.vectors)
+        if ids.ndim != 1 or not np.issubdtype(ids.dtype, np.integer) or ids.size == 0:
+            raise ValueError(f"{where}: class_ids must be a non-empty 1-D integer array")
+        if np.any(ids < 0) or np.any(np.diff(ids) <= 0):
+            raise ValueError(f"{where}: class_ids must be distinct, sorted and >= 0")
+        if vectors.ndim != 2 or vectors.shape[0] != ids.size:
+            raise ValueError(f"{where}: vectors must have shape ({ids.size}, d)")
+        if not np.all(np.isfinite(vectors)):
+            raise ValueError(f"{where}: vectors contain NaN or inf")
+        if not np.allclose(np.linalg.norm(vectors, axis=-1), 1.0, atol=1e-4):
+            raise ValueError(f"{where}: vectors must be unit-norm")
+        return self
+
+
+def save_scene(
+    scene: SceneGraph, path: str | os.PathLike, classes: ClassEmbeddings | None = None
+) -> None:
     """Write ``scene`` to one versioned ``.npz`` file, atomically (temp file, then rename).
 
     The file holds the map's content (objects, triangles, colours, edges) and its capacity; the
-    BVH is rebuilt deterministically on load, so a load gives back identical arrays.
+    BVH is rebuilt deterministically on load, so a load gives back identical arrays. ``classes``
+    (optional) are stored beside them (:func:`load_class_embeddings` reads them back); their
+    dimension must be the scene's embedding dimension.
     """
     path = Path(path)
     n = scene.num_objects
@@ -50,6 +95,15 @@ def save_scene(scene: SceneGraph, path: str | os.PathLike) -> None:
         "triangle_colors": np.asarray(scene.triangle_colors)[keep_tri],
         "capacity": np.asarray(tuple(scene.capacity), np.int64),
     }
+    if classes is not None:
+        classes.check()
+        if classes.vectors.shape[1] != scene.embeddings.shape[1]:
+            raise ValueError(
+                f"class embeddings have {classes.vectors.shape[1]} dims, the scene's "
+                f"{scene.embeddings.shape[1]}"
+            )
+        payload["class_ids"] = np.asarray(classes.class_ids, np.int64)
+        payload["class_embeddings"] = np.asarray(classes.vectors, np.float32)
     write_npz_atomic(path, payload)
 
 
@@ -114,3 +168,27 @@ def load_scene(path: str | os.PathLike) -> SceneGraph:
         )
     except ValueError as err:
         raise MapFormatError(f"{path}: {err}") from err
+
+
+def load_class_embeddings(path: str | os.PathLike) -> ClassEmbeddings | None:
+    """The class embeddings a map file holds (:func:`save_scene`), or None when it has none.
+
+    Raises :class:`MapFormatError` for a file :func:`load_scene` refuses, or malformed ones.
+    """
+    path = Path(path)
+    content = read_map_file(path, FORMAT_NAME, FORMAT_VERSION, "scene graph")
+    if "class_ids" not in content and "class_embeddings" not in content:
+        return None
+    if "class_ids" not in content or "class_embeddings" not in content:
+        raise MapFormatError(f"{path}: class_ids and class_embeddings must come together")
+    ids, vectors = content["class_ids"], content["class_embeddings"]
+    if ids.dtype != np.int64 or vectors.dtype != np.float32:
+        raise MapFormatError(f"{path}: class_ids must be int64 and class_embeddings float32")
+    try:
+        classes = ClassEmbeddings(ids, vectors).check(f"{path} (class embeddings)")
+    except ValueError as err:
+        raise MapFormatError(str(err)) from None
+    objects = content.get("embeddings")
+    if objects is None or objects.ndim != 2 or vectors.shape[1] != objects.shape[1]:
+        raise MapFormatError(f"{path}: class embeddings differ in dimension from the objects'")
+    return classes

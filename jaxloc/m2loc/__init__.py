@@ -56,7 +56,7 @@ from jaxloc.m2loc._hypotheses import (
     map_grid,
 )
 from jaxloc.m2loc._localization import LocalizationResult, localize_scan
-from jaxloc.m2loc._map import TripletMap, build_map
+from jaxloc.m2loc._map import SmallMapWarning, TripletMap, build_map, fit_config_to_map
 from jaxloc.m2loc._matching import consistency_graph, match_descriptors
 from jaxloc.m2loc._query import QueryOutput, describe_query, register_query, verified_fraction
 from jaxloc.m2loc._registration import point_residuals, register, up_axis_prior, weighted_kabsch
@@ -76,6 +76,7 @@ __all__ = [
     "MapGrid",
     "QueryOutput",
     "RoadNormals",
+    "SmallMapWarning",
     "TripletConfig",
     "TripletMap",
     "best_verified_clique",
@@ -88,6 +89,7 @@ __all__ = [
     "describe_points",
     "describe_query",
     "euclidean_clusters",
+    "fit_config_to_map",
     "fuse_instances",
     "greedy_cliques",
     "grid_verified_fraction",

@@ -3,6 +3,9 @@ query."""
 
 from __future__ import annotations
 
+import dataclasses
+import warnings
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -55,6 +58,28 @@ class TripletMap(eqx.Module):
     grid: MapGrid | None = None
 
 
+class SmallMapWarning(UserWarning):
+    """A per-map size of the configuration (``top_k``) was larger than the map and was clamped
+    to what the map holds."""
+
+
+def fit_config_to_map(
+    config: TripletConfig, num_vertices: int, stacklevel: int = 2
+) -> TripletConfig:
+    """``config`` with ``top_k`` clamped to ``num_vertices`` (a map of 19 vertices cannot give 25
+    matches per scan vertex), with a :class:`SmallMapWarning` when it changes anything; the
+    other sizes (clique seeds, hypotheses, the clique solver's tiers) are bounded by the
+    association count where they are used."""
+    if config.top_k <= num_vertices or num_vertices < 1:
+        return config
+    warnings.warn(
+        f"top_k={config.top_k} exceeds the {num_vertices} map vertices; using top_k={num_vertices}",
+        SmallMapWarning,
+        stacklevel=stacklevel + 1,
+    )
+    return dataclasses.replace(config, top_k=num_vertices)
+
+
 def check_points_labels(
     points, labels, classes: tuple[int, ...], what: str
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -100,14 +125,17 @@ def build_map(
 
     Raises:
         ValueError: bad shapes, NaN/inf, unknown labels, duplicates, or fewer than 3 vertices.
+
+    Warns:
+        SmallMapWarning: ``config.top_k`` exceeds the vertex count; the map keeps a copy of
+            ``config`` with ``top_k`` equal to the vertex count (:func:`fit_config_to_map`).
     """
     config = m2loc_config(3) if config is None else config
     classes = config.descriptor.classes
     points, labels = check_points_labels(map_points, map_labels, classes, "map")
     if points.shape[0] < 3:
         raise ValueError(f"a map needs at least 3 vertices, got {points.shape[0]}")
-    if config.top_k > points.shape[0]:
-        raise ValueError(f"top_k={config.top_k} exceeds the {points.shape[0]} map vertices")
+    config = fit_config_to_map(config, points.shape[0], stacklevel=2)
     positions = np.searchsorted(np.sort(classes), labels)
     positions = np.argsort(classes)[positions]
     origin = points.mean(axis=0)

@@ -125,7 +125,7 @@ def register_query(
     TRACE_COUNTS["register_query"] += 1
     config = triplet_map.config
     num_scales, nq, _ = descriptors.shape
-    k = config.top_k
+    k = min(config.top_k, triplet_map.points.shape[0])  # a small map: as many as it holds
     # A Python loop over the (at most a few) scales, not vmap: XLA:CPU runs the batched
     # (1, Nq, D) x (1, Nm, D) similarity ~2.7x slower than the plain matrix product
     # (benchmarks/triplet.py --stages; 14.2 vs 5.2 ms on Town01).

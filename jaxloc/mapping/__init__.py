@@ -12,6 +12,7 @@ the latter's types, so neither the readers nor the methods depend on each other.
 from jaxloc.mapping.lidar_maps import LidarMaps, MapBuildConfig, build_lidar_maps, fit_plane
 from jaxloc.mapping.scene_graphs import (
     DEFAULT_TARGET_VERTICES,
+    class_embeddings,
     decimate,
     onehot_classes,
     scene_graph_from_reconstruction,
@@ -22,6 +23,7 @@ __all__ = [
     "LidarMaps",
     "MapBuildConfig",
     "build_lidar_maps",
+    "class_embeddings",
     "decimate",
     "fit_plane",
     "onehot_classes",

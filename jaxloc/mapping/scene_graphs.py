@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from jaxloc.io.embedding_table import EmbeddingTable
 from jaxloc.io.reconstruction import LabelledReconstruction
+from jaxloc.io.scene_map import ClassEmbeddings
 from jaxloc.scene import SceneGraph
 
 #: Vertices per object of SG2Loc's coarse 3RScan meshes (about 860).
@@ -122,3 +123,29 @@ def scene_graph_from_reconstruction(
         return SceneGraph.from_meshes(meshes, class_ids, vectors)
     except ValueError as err:
         raise ValueError(f"{recon.source}: {err}") from err
+
+
+def class_embeddings(
+    recon: LabelledReconstruction, embeddings: EmbeddingTable | None = None
+) -> ClassEmbeddings | None:
+    """The embedding of each class of the map :func:`scene_graph_from_reconstruction` builds,
+    what query patch embeddings from label images are made of (:mod:`jaxloc.io.label_images`).
+
+    One-hot over the classes without a table; with a table by label, each class's vector is the
+    normalised mean of its objects' vectors (exactly the table's row when keyed by class id or when
+    all of the class's labels share one vector); None for a table by object (object vectors say
+    nothing of a class).
+    """
+    class_ids = np.asarray([o.class_id for o in recon.objects], np.int64)
+    if embeddings is None:
+        return ClassEmbeddings.onehot(class_ids)
+    if embeddings.by == "object":
+        return None
+    ids = np.unique(class_ids)
+    vectors = np.stack([embeddings.lookup(o) for o in recon.objects])
+    vectors = vectors / np.linalg.norm(vectors, axis=1, keepdims=True)
+    means = np.stack([vectors[class_ids == c].mean(axis=0) for c in ids])
+    norms = np.linalg.norm(means, axis=1, keepdims=True)
+    if np.any(norms == 0):
+        raise ValueError(f"{embeddings.source}: a class's object embeddings cancel out")
+    return ClassEmbeddings(ids, (means / norms).astype(np.float32))

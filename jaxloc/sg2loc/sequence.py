@@ -28,7 +28,8 @@ class Sequence(eqx.Module):
     Attributes:
         camera: the pinhole :class:`~jaxloc.Camera` of every frame.
         patch_embeddings: (T, rows, cols, d) per-patch embeddings of each image (any norm; they
-            are compared by cosine).
+            are compared by cosine). A zero vector marks a patch without an embedding (e.g. no
+            known class in its label image): it adds nothing to the semantic score.
         ego_motion: (T-1, 4) motion from frame t to t+1 as (dx, dy, dz, dyaw), metres and
             radians, in frame t's gravity-aligned body frame (x forward, y left, z up).
         depth: optional (T, H, W) sensor depth in metres along the optical axis; 0 = invalid.
@@ -59,8 +60,6 @@ class Sequence(eqx.Module):
         num_frames = emb.shape[0]
         if num_frames < 1:
             raise ValueError("a sequence needs at least one frame")
-        if np.any(np.linalg.norm(emb, axis=-1) == 0):
-            raise ValueError("patch_embeddings contains zero vectors (cosine undefined)")
         empty = num_frames == 1 and np.size(ego_motion) == 0
         if np.shape(ego_motion) != (num_frames - 1, 4) and not empty:
             raise ValueError(
