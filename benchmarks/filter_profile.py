@@ -94,7 +94,7 @@ def profile_stride(scene, seq, poses_gt, stride, round_index, args):
     poses = np.asarray(state.poses)[:chunk_particles]
     if chunk >= args.particles:  # one call over every slot: inactive ones cast NaN rays
         poses = np.where(np.asarray(state.active)[:, None], poses, np.nan).astype(np.float32)
-    origins, directions = render_order_rays(poses, seq.camera, grid, PACKET_SIZE)
+    origins, directions = render_order_rays(poses, seq.camera, grid, PACKET_SIZE, args.engine)
     directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     valid = np.all(np.isfinite(origins), axis=1)
     finite_origins = np.where(valid[:, None], origins, 0.0).astype(np.float32)
@@ -104,12 +104,14 @@ def profile_stride(scene, seq, poses_gt, stride, round_index, args):
     search = functools.partial(hit_triangles, engine=engine, packet_size=PACKET_SIZE)
     search_args = (scene, finite_origins, directions, valid)
     parts["hit search"] = timed_jit(search, search_args, args.repeats)
-    cast = functools.partial(raycast, engine=engine, packet_size=PACKET_SIZE)
+    # The step renders on raycast's values-only path; --differentiable profiles the other one.
+    path = {"engine": engine, "differentiable": args.differentiable}
+    cast = functools.partial(raycast, packet_size=PACKET_SIZE, **path)
     cast_time = timed_jit(cast, (scene, origins, directions), args.repeats)
-    parts["hit attributes (t, barycentric, object)"] = tuple(
+    parts["hit values (t, barycentric, object) beyond the search"] = tuple(
         a - b for a, b in zip(cast_time, parts["hit search"], strict=True)
     )
-    render = functools.partial(render_batch, engine=engine)
+    render = functools.partial(render_batch, **path)
     pose_args = (scene, jnp.asarray(poses), seq.camera, grid, frame1.tilt)
     render_time = timed_jit(render, pose_args, args.repeats)
     parts["views (depth, colour gathers, patch majority)"] = tuple(
@@ -183,6 +185,11 @@ def main(argv=None) -> None:
     parser.add_argument("--chunk", type=int, default=None, help="StepConfig.particle_chunk")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--differentiable",
+        action="store_true",
+        help="profile raycast's differentiable path (the step itself renders values only)",
+    )
     args = parser.parse_args(argv)
     args.frames = 2
     with tempfile.TemporaryDirectory() as folder:
@@ -196,7 +203,8 @@ def main(argv=None) -> None:
     device = jax.devices()[0]
     print(
         f"# Filter step profile ({args.width}x{args.height}, {args.particles} particles, "
-        f"engine {args.engine} = {resolve_engine(args.engine)})\n"
+        f"engine {args.engine} = {resolve_engine(args.engine)}, "
+        f"{'differentiable' if args.differentiable else 'values-only'} hit path)\n"
     )
     print(
         f"- {device.platform} ({device.device_kind}), {os.cpu_count()} CPUs; load average "

@@ -42,7 +42,8 @@ import numpy as np
 import jaxloc
 from jaxloc import raycasting
 from jaxloc.geometry import rotation_world_cam
-from jaxloc.sg2loc.rendering import PACKET_SIZE, _tile_order
+from jaxloc.raycasting.engines import resolve_engine
+from jaxloc.sg2loc.rendering import PACKET_SIZE, _tiles
 from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
 
 
@@ -81,10 +82,15 @@ def world_rays(poses: np.ndarray, camera: jaxloc.Camera, grid: jaxloc.RayGrid):
     return o.astype(np.float32), d.astype(np.float32)
 
 
-def render_order_rays(poses, camera: jaxloc.Camera, grid: jaxloc.RayGrid, packet: int):
-    """The (N * R', 3) origins and directions ``render_batch`` casts: tile order, padded to packets
-    with NaN origins (R' = R rounded up to a multiple of ``packet``)."""
-    order = _tile_order(grid.shape)
+def render_order_rays(
+    poses, camera: jaxloc.Camera, grid: jaxloc.RayGrid, packet: int, engine: str = "jax"
+):
+    """The (N * R', 3) origins and directions ``render_batch`` casts with ``engine``: for "jax",
+    tile order, padded to packets with NaN origins (R' = R rounded up to a multiple of
+    ``packet``); for the others the grid's own order (R' = R)."""
+    if resolve_engine(engine) != "jax":
+        return world_rays(poses, camera, grid)
+    order = _tiles(grid.shape)
     num = order.shape[0]
     padded = -(-num // packet) * packet
     o, d = world_rays(poses, camera, grid)

@@ -10,19 +10,62 @@ Two published methods as pure, jit/vmap-able functions:
 
 Around them: the shared core at this level (:mod:`~jaxloc.scene`, :mod:`~jaxloc.camera`,
 :mod:`~jaxloc.geometry`, :mod:`~jaxloc.lsq`, :mod:`~jaxloc.metrics`, :mod:`~jaxloc.sharding`,
-:mod:`~jaxloc.figures`), :mod:`jaxloc.raycasting` (BVH, traversal, engines), :mod:`jaxloc.io`
-(real formats and map files), :mod:`jaxloc.mapping` (maps from recordings),
-:mod:`jaxloc.synthetic` (synthetic worlds) and :mod:`jaxloc.cli` (the ``jaxloc`` command).
+:mod:`~jaxloc.figures`, :mod:`~jaxloc.compilation_cache`), :mod:`jaxloc.raycasting` (BVH,
+traversal, engines), :mod:`jaxloc.io` (real formats and map files), :mod:`jaxloc.mapping` (maps
+from recordings), :mod:`jaxloc.synthetic` (synthetic worlds) and :mod:`jaxloc.cli` (the ``jaxloc``
+command).
+
+``import jaxloc`` is cheap: the names below and the subpackages are imported on first use (so
+``jaxloc --help`` never imports JAX).
 """
 
-from importlib.metadata import PackageNotFoundError, version
+from __future__ import annotations
 
-from jaxloc import io, lsq, m2loc, mapping, metrics, raycasting, sg2loc, sharding
-from jaxloc.camera import Camera, RayGrid, patch_grid, stride_grid
-from jaxloc.io import MapFormatError, load_scene, save_scene
-from jaxloc.raycasting import RayHit, raycast
-from jaxloc.scene import Capacity, SceneGraph
-from jaxloc.sg2loc import Render, Sequence, render, render_batch
+from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING
+
+from jaxloc._lazy import lazy_exports
+
+#: Public name -> the module that defines it ("" for a subpackage or module of that name),
+#: imported on first use.
+_EXPORTS = {
+    "Camera": "camera",
+    "RayGrid": "camera",
+    "patch_grid": "camera",
+    "stride_grid": "camera",
+    "Capacity": "scene",
+    "SceneGraph": "scene",
+    "MapFormatError": "io.errors",
+    "load_scene": "io.scene_map",
+    "save_scene": "io.scene_map",
+    "RayHit": "raycasting.hits",
+    "raycast": "raycasting.hits",
+    "Render": "sg2loc.rendering",
+    "render": "sg2loc.rendering",
+    "render_batch": "sg2loc.rendering",
+    "Sequence": "sg2loc.sequence",
+    "enable_compilation_cache": "compilation_cache",
+    **dict.fromkeys(
+        (
+            "camera",
+            "compilation_cache",
+            "figures",
+            "geometry",
+            "io",
+            "lsq",
+            "m2loc",
+            "mapping",
+            "metrics",
+            "raycasting",
+            "scene",
+            "sg2loc",
+            "sharding",
+            "synthetic",
+        ),
+        "",
+    ),
+}
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 try:
     __version__ = version("jaxloc")
@@ -30,6 +73,7 @@ except PackageNotFoundError:  # a source tree that was never installed
     __version__ = "0+unknown"
 
 __all__ = [
+    "__version__",
     "Camera",
     "Capacity",
     "MapFormatError",
@@ -38,20 +82,53 @@ __all__ = [
     "Render",
     "SceneGraph",
     "Sequence",
-    "__version__",
-    "io",
+    "enable_compilation_cache",
     "load_scene",
+    "patch_grid",
+    "raycast",
+    "render",
+    "render_batch",
+    "save_scene",
+    "stride_grid",
+    "camera",
+    "compilation_cache",
+    "figures",
+    "geometry",
+    "io",
     "lsq",
     "m2loc",
     "mapping",
     "metrics",
-    "patch_grid",
-    "raycast",
     "raycasting",
-    "render",
-    "render_batch",
-    "save_scene",
+    "scene",
     "sg2loc",
     "sharding",
-    "stride_grid",
+    "synthetic",
 ]
+
+
+if TYPE_CHECKING:  # what the lazy names are, for type checkers and the docs
+    from jaxloc import (
+        camera,
+        compilation_cache,
+        figures,
+        geometry,
+        io,
+        lsq,
+        m2loc,
+        mapping,
+        metrics,
+        raycasting,
+        scene,
+        sg2loc,
+        sharding,
+        synthetic,
+    )
+    from jaxloc.camera import Camera, RayGrid, patch_grid, stride_grid
+    from jaxloc.compilation_cache import enable_compilation_cache
+    from jaxloc.io.errors import MapFormatError
+    from jaxloc.io.scene_map import load_scene, save_scene
+    from jaxloc.raycasting.hits import RayHit, raycast
+    from jaxloc.scene import Capacity, SceneGraph
+    from jaxloc.sg2loc.rendering import Render, render, render_batch
+    from jaxloc.sg2loc.sequence import Sequence

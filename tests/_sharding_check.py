@@ -118,9 +118,9 @@ def engine_call_checks(mesh) -> dict:
     calls = []
     host = embree._embree_host
 
-    def counting(key, triangles, origins, directions, valid, out=None):
+    def counting(key, triangles, origins, directions, valid, out=None, values=False):
         calls.append(int(np.prod(np.shape(origins)[:-1])))
-        return host(key, triangles, origins, directions, valid, out)
+        return host(key, triangles, origins, directions, valid, out, values)
 
     embree._embree_host = counting
     try:

@@ -31,6 +31,9 @@ COMPILE_CACHE = Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax_com
 #: Every program is cached (the tiny test programs compile in well under jax's 1 s default).
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(COMPILE_CACHE))
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
+#: The command line run in-process by the tests must not switch the cache to the user's folder
+#: (tests/test_compilation_cache.py checks jaxloc's own cache in subprocesses).
+os.environ["JAXLOC_NO_CACHE"] = "1"
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 jax.config.update(
     "jax_persistent_cache_min_compile_time_secs",

@@ -32,6 +32,7 @@ ALL = [
 ]
 MIN_AGREEMENT = 0.999
 T_TOL = 1e-4  # metres
+BARY_TOL = 3e-4
 
 
 @functools.cache
@@ -91,6 +92,67 @@ def test_engine_agrees_with_the_jax_engine(engine, scene, rays, hits):
     np.testing.assert_allclose(ours.t[agree & ours.hit], hits.t[agree & hits.hit], rtol=1e-6)
     np.testing.assert_allclose(ours.barycentric[agree], hits.barycentric[agree], atol=1e-6)
     np.testing.assert_array_equal(ours.object_id[agree], hits.object_id[agree])
+
+
+@functools.cache
+def _cast_values(engine: str):
+    """The values-only path of :func:`raycast` (``differentiable=False``), jitted per engine."""
+    return jax.jit(functools.partial(raycast, engine=engine, differentiable=False))
+
+
+@pytest.mark.parametrize("engine", ALL)
+def test_values_only_path_equals_the_differentiable_one(engine, scene, rays, reference):
+    """The same rays through both paths: the same triangles, objects and misses (the same engine
+    picks them); the engine's own t and barycentric coordinates equal JAX's recompute to float32
+    rounding (both as close to the float64 brute force on rays that meet their triangle at
+    |cos| > 0.05); invalid rays and padding triangles miss on both paths."""
+    padded = random_scene(0, capacity=scene.capacity._replace(triangles=scene.num_triangles + 64))
+    o, d = rays[0].copy(), rays[1].copy()
+    o[::7] = np.nan
+    d[3::11] = 0.0
+    t_ref, triangle_ref, bary_ref = reference
+    for world in (scene, padded):
+        exact = _np(_cast(engine)(world, o, d))
+        fast = _np(_cast_values(engine)(world, o, d))
+        np.testing.assert_array_equal(fast.triangle_id, exact.triangle_id)
+        np.testing.assert_array_equal(fast.object_id, exact.object_id)
+        np.testing.assert_array_equal(fast.hit, exact.hit)
+        assert 0.4 < fast.hit.mean() < 0.9 and not fast.hit[::7].any()
+        assert np.all(fast.t[~fast.hit] == np.inf) and np.all(fast.barycentric[~fast.hit] == 0)
+        hit = fast.hit
+        close = np.isclose(fast.t[hit], exact.t[hit], rtol=1e-5, atol=1e-6)
+        assert close.mean() >= 0.99
+        steep = (fast.triangle_id == triangle_ref) & _steep(world, rays, triangle_ref)
+        assert steep.mean() > 0.4
+        for path in (fast, exact):  # float32 rounding on small triangles: ~2e-4 at worst
+            assert np.max(np.abs(path.t[steep] - t_ref[steep])) <= T_TOL
+            assert np.max(np.abs(path.barycentric[steep] - bary_ref[steep])) <= BARY_TOL
+        near = np.all(np.abs(fast.barycentric - exact.barycentric) <= BARY_TOL, axis=-1)
+        assert near[hit].mean() >= 0.99  # the rest: grazing rays, rounded apart by both paths
+        np.testing.assert_allclose(fast.barycentric.sum(-1)[hit], 1.0, atol=1e-5)
+
+
+@pytest.mark.parametrize("engine", ALL)
+def test_values_only_renders_equal_and_carry_no_gradient(engine, room_scene):
+    """``render_batch(..., differentiable=False)`` (the filter's path) gives the differentiable
+    render's depth, colour and patch majority; its gradient is zero by contract, never NaN."""
+    camera = Camera.from_fov(40, 30, 60.0)
+    grid = stride_grid(camera, 4)
+    poses = jnp.array([[0.3, -0.4, 1.5, 0.7], [-1.0, 0.5, 1.2, 2.5]])
+    both = {
+        flag: _np(render_batch(room_scene, poses, camera, grid, engine=engine, differentiable=flag))
+        for flag in (True, False)
+    }
+    np.testing.assert_array_equal(both[False].patch_object, both[True].patch_object)
+    np.testing.assert_array_equal(both[False].valid, both[True].valid)
+    np.testing.assert_allclose(both[False].depth, both[True].depth, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(both[False].color, both[True].color, atol=1e-4)
+
+    def total_depth(p):
+        depth = render_batch(room_scene, p, camera, grid, engine=engine, differentiable=False)
+        return jnp.sum(jnp.where(jnp.isfinite(depth.depth), depth.depth, 0.0))
+
+    np.testing.assert_array_equal(np.asarray(jax.grad(total_depth)(poses)), 0.0)
 
 
 @pytest.mark.parametrize("engine", ALL)
@@ -241,9 +303,9 @@ def test_padding_triangles_and_invalid_rays_never_reach_embree(scene, rays, monk
     traced = []
     nearest = embree._EmbreeMap.nearest
 
-    def counting(self, origins, directions, faces=None):
+    def counting(self, origins, directions, out=None):
         traced.append((len(self.ids), origins.shape[0]))
-        return nearest(self, origins, directions, faces)
+        return nearest(self, origins, directions, out)
 
     monkeypatch.setattr(embree._EmbreeMap, "nearest", counting)
     o = rays[0].copy()

@@ -94,10 +94,11 @@ def test_every_engine_and_the_chunk_loop_run_sharded_like_one_device(measured):
 
 def test_each_device_calls_the_engine_on_its_own_shard(measured):
     """A sharded step with Embree calls it once per device, each time with one shard's rays
-    (16 particles / 4 devices, rounded up to the render's 8-ray packets), not with all of them."""
+    (16 particles / 4 devices, each particle's grid rays: Embree's rays are not padded to the
+    "jax" engine's packets), not with all of them."""
     if "embree_rays_per_call" not in measured:
         pytest.skip("embreex not installed")
-    per_particle = -(-measured["rays_per_particle"] // 8) * 8
+    per_particle = measured["rays_per_particle"]
     assert measured["embree_rays_per_call"] == [tiny.CAPACITY // 4 * per_particle] * 4
 
 

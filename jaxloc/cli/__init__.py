@@ -7,7 +7,14 @@
   sequence (SemanticKITTI, plain or HeLiPR layout), in the format ``localize-lidar`` reads.
 * ``jaxloc bench raycast|filter|triplet``: quick in-package speed checks after compilation.
 * ``jaxloc build-scene-graph SCAN OUT.npz``: a map from a ScanNet / 3RScan / labelled scan.
-* ``jaxloc localize-camera MAP.npz SEQ_DIR``: SG2Loc on a folder of RGB-D frames.
+* ``jaxloc localize-camera MAP.npz SEQ``: SG2Loc on a ScanNet export folder, ``.sens`` or 3RScan
+  scan.
+* ``jaxloc cache [--clear]``: where JAX's persistent compilation cache is, its size; clear it.
+
+Every command but ``cache`` turns on the persistent compilation cache
+(:mod:`jaxloc.compilation_cache`) unless ``jaxloc --no-cache COMMAND`` or ``JAXLOC_NO_CACHE=1``:
+a program compiled once on a machine is loaded, not compiled, by later runs. Parsing and ``--help``
+import neither JAX nor the pipelines (each command imports what it needs).
 
 Input problems (missing or malformed files, bad numbers) end with exit code 2 and a one-line
 message on stderr, never a traceback. ``main(argv)`` returns the exit code, so the command can be
@@ -53,8 +60,11 @@ examples:
   jaxloc bench triplet --queries 20
   jaxloc build-scene-graph scans/scene0000_00 scene0000_00.npz --format scannet
   jaxloc localize-camera scene0000_00.npz scans/scene0000_00/export --plot run.png
+  jaxloc cache --clear                           # empty the compilation cache
 
-Run `jaxloc COMMAND --help` for the options of a command.
+Run `jaxloc COMMAND --help` for the options of a command. Compiled programs are cached in
+$JAXLOC_CACHE_DIR (default: the user's cache folder, see `jaxloc cache`); `jaxloc --no-cache
+COMMAND` or JAXLOC_NO_CACHE=1 turns that off.
 """
 
 _BENCH_EPILOG = """\
@@ -135,6 +145,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="Differentiable global localization against compact maps.",
         epilog=_MAIN_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--no-cache",
+        action="store_true",
+        help="do not use JAX's persistent compilation cache (also: JAXLOC_NO_CACHE=1)",
     )
     commands = parser.add_subparsers(
         dest="command", required=True, metavar="COMMAND", help="what to run (COMMAND --help)"
@@ -262,7 +277,42 @@ def build_parser() -> argparse.ArgumentParser:
     _add_triplet_options(triplet, scales=1, k=25)
     _scene_graph.add_parser(commands)
     _camera.add_parser(commands)
+    cache = commands.add_parser(
+        "cache",
+        help="where the compilation cache is and how big; --clear empties it",
+        description="JAX's persistent compilation cache of jaxloc: every command stores the "
+        "programs it compiles there and loads them on later runs. The folder is "
+        "$JAXLOC_CACHE_DIR, else jaxloc/xla in the user's cache folder; it is bounded to 2 GiB "
+        "(least recently used entries go first) and can be cleared at any time.",
+    )
+    cache.add_argument("--clear", action="store_true", help="delete every cached program")
     return parser
+
+
+def run_cache(args: argparse.Namespace) -> int:
+    """``jaxloc cache``: print the folder and its size; ``--clear`` empties it."""
+    from jaxloc.compilation_cache import cache_size, clear_compilation_cache, default_cache_dir
+
+    folder = default_cache_dir()
+    if args.clear:
+        print(f"removed {clear_compilation_cache(folder)} files from {folder}")
+        return 0
+    files, size = cache_size(folder)
+    print(f"{folder}: {files} files, {size / 1e6:.1f} MB")
+    return 0
+
+
+def _enable_cache(args: argparse.Namespace) -> None:
+    """Turn the persistent compilation cache on for a command (a folder that cannot be created
+    is a note, not an error: the command then compiles as without a cache)."""
+    if args.no_cache or args.command == "cache":
+        return
+    from jaxloc.compilation_cache import enable_compilation_cache
+
+    try:
+        enable_compilation_cache()
+    except OSError as error:
+        print(f"jaxloc: note: no compilation cache ({error})", file=sys.stderr)
 
 
 _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
@@ -274,6 +324,7 @@ _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "bench triplet": run_bench_triplet,
     "build-scene-graph": _scene_graph.run_build_scene_graph,
     "localize-camera": _camera.run_localize_camera,
+    "cache": run_cache,
 }
 
 
@@ -284,6 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     """
     args = build_parser().parse_args(argv)
     name = args.command if args.command != "bench" else f"bench {args.bench}"
+    _enable_cache(args)
     return run_guarded(name, lambda: _COMMANDS[name](args))
 
 

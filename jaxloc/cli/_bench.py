@@ -40,8 +40,8 @@ def _check_positive(args: argparse.Namespace, names: Sequence[str]) -> None:
 def run_bench_raycast(args: argparse.Namespace) -> int:
     import jax
 
-    from jaxloc import render_batch, stride_grid
-    from jaxloc.camera import Camera
+    from jaxloc.camera import Camera, stride_grid
+    from jaxloc.sg2loc.rendering import render_batch
     from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
 
     _check_positive(args, ("poses", "width", "height", "stride", "objects", "vertices", "repeats"))

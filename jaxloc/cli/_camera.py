@@ -52,8 +52,6 @@ exit status: 0 on success, 2 on missing or malformed files or bad options (one-l
 
 def add_parser(commands) -> None:
     """Register ``localize-camera`` on the ``jaxloc`` subcommand parsers."""
-    from jaxloc.sg2loc.particles import PAPER_HEIGHTS
-
     parser = commands.add_parser(
         "localize-camera",
         help="localize a folder of RGB-D frames in a scene graph (SG2Loc)",
@@ -93,8 +91,8 @@ def add_parser(commands) -> None:
         "--heights",
         type=float,
         nargs="+",
-        default=list(PAPER_HEIGHTS),
-        help="initial camera heights above the floor, m (default the paper's 1.5 1.6 1.7 1.8)",
+        help="initial camera heights above the floor, m (default the paper's, "
+        "jaxloc.sg2loc.particles.PAPER_HEIGHTS)",
     )
     group.add_argument("--width", type=int, default=320, help="working width, px (default 320)")
     group.add_argument("--height", type=int, help="working height, px (default: keep the aspect)")
@@ -116,6 +114,7 @@ def add_parser(commands) -> None:
 
 def _config(args: argparse.Namespace):
     from jaxloc.sg2loc import SG2LocConfig
+    from jaxloc.sg2loc.particles import PAPER_HEIGHTS
     from jaxloc.sg2loc.resampling import KLDConfig
 
     if args.particles < 1:
@@ -125,7 +124,7 @@ def _config(args: argparse.Namespace):
             capacity=args.particles,
             strides=tuple(args.strides),
             box_half_widths=tuple(args.boxes),
-            heights=tuple(args.heights),
+            heights=tuple(PAPER_HEIGHTS if args.heights is None else args.heights),
             kld=KLDConfig(min_particles=min(500, args.particles), max_particles=args.particles),
         )
     except ValueError as error:

@@ -24,10 +24,11 @@ def demo_episode_config(args: argparse.Namespace):
 def run_demo(args: argparse.Namespace) -> int:
     import jax
 
-    from jaxloc import render_batch, stride_grid
+    from jaxloc.camera import stride_grid
     from jaxloc.metrics import summarize, yaw_pose_errors
     from jaxloc.sg2loc import SG2LocConfig, localize
     from jaxloc.sg2loc.figures import plot_rounds
+    from jaxloc.sg2loc.rendering import render_batch
     from jaxloc.sg2loc.resampling import KLDConfig
     from jaxloc.synthetic import indoor
 

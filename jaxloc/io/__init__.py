@@ -31,44 +31,110 @@ LiDAR (M2Loc):
   :func:`load_triplet_map`).
 """
 
-from jaxloc.io.camera_sequence import (
-    CAMERA_FORMATS,
-    CameraRecording,
-    detect_camera_format,
-    load_camera_sequence,
-    open_camera_recording,
-)
-from jaxloc.io.embedding_table import EmbeddingTable, load_embedding_table
-from jaxloc.io.errors import MapFormatError
-from jaxloc.io.helipr import load_helipr_scan, read_helipr_gt
-from jaxloc.io.instance_maps import (
-    InstanceMap,
-    load_instance_map,
-    load_road_normals,
-    save_lidar_maps,
-)
-from jaxloc.io.label_images import patch_embeddings_from_labels, read_label_image
-from jaxloc.io.lidar_map import FORMAT_VERSION as TRIPLET_MAP_FORMAT_VERSION
-from jaxloc.io.lidar_map import load_triplet_map, save_triplet_map
-from jaxloc.io.lidar_sequence import (
-    LidarSequence,
-    detect_layout,
-    is_sequence_dir,
-    load_lidar_sequence,
-    load_sequence_scan,
-    read_kitti_calibration,
-)
-from jaxloc.io.meshes import load_meshes, load_objects_file, load_scene_from_files
-from jaxloc.io.ply import read_generic
-from jaxloc.io.poses import PoseFile, read_pose_file, read_poses, write_kitti, write_tum
-from jaxloc.io.reconstruction import LabelledReconstruction, ReconstructionObject
-from jaxloc.io.rscan import read_3rscan
-from jaxloc.io.rscan_sequence import open_rscan_sequence, read_rescan_transform
-from jaxloc.io.scannet import read_label_table, read_scannet
-from jaxloc.io.scannet_export import open_scannet_export
-from jaxloc.io.scannet_sens import open_sens, read_sens_header
-from jaxloc.io.scene_map import ClassEmbeddings, load_class_embeddings, load_scene, save_scene
-from jaxloc.io.semantickitti import LabelledScan, load_semantickitti_scan, semantickitti_class_ids
+from typing import TYPE_CHECKING
+
+from jaxloc._lazy import lazy_exports
+
+#: Public name -> the submodule that defines it (imported on first use: importing the package
+#: costs only what is used).
+_EXPORTS = {
+    "CAMERA_FORMATS": "camera_sequence",
+    "CameraRecording": "camera_sequence",
+    "detect_camera_format": "camera_sequence",
+    "load_camera_sequence": "camera_sequence",
+    "open_camera_recording": "camera_sequence",
+    "EmbeddingTable": "embedding_table",
+    "load_embedding_table": "embedding_table",
+    "MapFormatError": "errors",
+    "load_helipr_scan": "helipr",
+    "read_helipr_gt": "helipr",
+    "InstanceMap": "instance_maps",
+    "load_instance_map": "instance_maps",
+    "load_road_normals": "instance_maps",
+    "save_lidar_maps": "instance_maps",
+    "patch_embeddings_from_labels": "label_images",
+    "read_label_image": "label_images",
+    "TRIPLET_MAP_FORMAT_VERSION": "lidar_map:FORMAT_VERSION",
+    "load_triplet_map": "lidar_map",
+    "save_triplet_map": "lidar_map",
+    "LidarSequence": "lidar_sequence",
+    "detect_layout": "lidar_sequence",
+    "is_sequence_dir": "lidar_sequence",
+    "load_lidar_sequence": "lidar_sequence",
+    "load_sequence_scan": "lidar_sequence",
+    "read_kitti_calibration": "lidar_sequence",
+    "load_meshes": "meshes",
+    "load_objects_file": "meshes",
+    "load_scene_from_files": "meshes",
+    "read_generic": "ply",
+    "PoseFile": "poses",
+    "read_pose_file": "poses",
+    "read_poses": "poses",
+    "write_kitti": "poses",
+    "write_tum": "poses",
+    "LabelledReconstruction": "reconstruction",
+    "ReconstructionObject": "reconstruction",
+    "read_3rscan": "rscan",
+    "open_rscan_sequence": "rscan_sequence",
+    "read_rescan_transform": "rscan_sequence",
+    "read_label_table": "scannet",
+    "read_scannet": "scannet",
+    "open_scannet_export": "scannet_export",
+    "open_sens": "scannet_sens",
+    "read_sens_header": "scannet_sens",
+    "ClassEmbeddings": "scene_map",
+    "load_class_embeddings": "scene_map",
+    "load_scene": "scene_map",
+    "save_scene": "scene_map",
+    "LabelledScan": "semantickitti",
+    "load_semantickitti_scan": "semantickitti",
+    "semantickitti_class_ids": "semantickitti",
+}
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+
+if TYPE_CHECKING:  # the lazy names, for type checkers and the API reference
+    from jaxloc.io.camera_sequence import (
+        CAMERA_FORMATS,
+        CameraRecording,
+        detect_camera_format,
+        load_camera_sequence,
+        open_camera_recording,
+    )
+    from jaxloc.io.embedding_table import EmbeddingTable, load_embedding_table
+    from jaxloc.io.errors import MapFormatError
+    from jaxloc.io.helipr import load_helipr_scan, read_helipr_gt
+    from jaxloc.io.instance_maps import (
+        InstanceMap,
+        load_instance_map,
+        load_road_normals,
+        save_lidar_maps,
+    )
+    from jaxloc.io.label_images import patch_embeddings_from_labels, read_label_image
+    from jaxloc.io.lidar_map import FORMAT_VERSION as TRIPLET_MAP_FORMAT_VERSION
+    from jaxloc.io.lidar_map import load_triplet_map, save_triplet_map
+    from jaxloc.io.lidar_sequence import (
+        LidarSequence,
+        detect_layout,
+        is_sequence_dir,
+        load_lidar_sequence,
+        load_sequence_scan,
+        read_kitti_calibration,
+    )
+    from jaxloc.io.meshes import load_meshes, load_objects_file, load_scene_from_files
+    from jaxloc.io.ply import read_generic
+    from jaxloc.io.poses import PoseFile, read_pose_file, read_poses, write_kitti, write_tum
+    from jaxloc.io.reconstruction import LabelledReconstruction, ReconstructionObject
+    from jaxloc.io.rscan import read_3rscan
+    from jaxloc.io.rscan_sequence import open_rscan_sequence, read_rescan_transform
+    from jaxloc.io.scannet import read_label_table, read_scannet
+    from jaxloc.io.scannet_export import open_scannet_export
+    from jaxloc.io.scannet_sens import open_sens, read_sens_header
+    from jaxloc.io.scene_map import ClassEmbeddings, load_class_embeddings, load_scene, save_scene
+    from jaxloc.io.semantickitti import (
+        LabelledScan,
+        load_semantickitti_scan,
+        semantickitti_class_ids,
+    )
 
 __all__ = [
     "TRIPLET_MAP_FORMAT_VERSION",

@@ -55,7 +55,7 @@ from jaxloc.m2loc._hypotheses import (
     grid_verified_fraction,
     map_grid,
 )
-from jaxloc.m2loc._localization import LocalizationResult, localize_scan
+from jaxloc.m2loc._localization import LocalizationResult, localize_scan, query_capacity
 from jaxloc.m2loc._map import SmallMapWarning, TripletMap, build_map, fit_config_to_map
 from jaxloc.m2loc._matching import consistency_graph, match_descriptors
 from jaxloc.m2loc._query import QueryOutput, describe_query, register_query, verified_fraction
@@ -103,6 +103,7 @@ __all__ = [
     "max_clique_exact",
     "max_clique_with_info",
     "point_residuals",
+    "query_capacity",
     "register",
     "register_query",
     "summarize_localization",

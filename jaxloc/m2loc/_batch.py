@@ -11,7 +11,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
-from jaxloc.m2loc._localization import LocalizationResult, check_points_labels, invalid_result
+from jaxloc.m2loc._localization import (
+    LocalizationResult,
+    check_points_labels,
+    invalid_result,
+    query_capacity,
+)
 from jaxloc.m2loc._map import TripletMap
 from jaxloc.m2loc._query import describe_query, register_query
 from jaxloc.sharding import shard_batch
@@ -54,7 +59,7 @@ def localize_scans(
         return []
     largest = max(points.shape[0] for points, _ in checked)
     if capacity is None:
-        capacity = config.query_capacity or max(32, 1 << max(largest - 1, 0).bit_length())
+        capacity = query_capacity(max(largest, 1), config)
     if largest > capacity:
         raise ValueError(
             f"a scan has {largest} vertices, above the query capacity {capacity}: raise "

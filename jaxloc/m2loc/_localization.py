@@ -9,9 +9,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxloc.compilation_cache import cached_call
 from jaxloc.m2loc._config import TripletConfig
 from jaxloc.m2loc._map import TripletMap, build_map, check_points_labels
-from jaxloc.m2loc._query import describe_query, register_query
+from jaxloc.m2loc._query import QueryOutput, describe_query, register_query
 
 
 class LocalizationResult(NamedTuple):
@@ -42,7 +43,9 @@ class LocalizationResult(NamedTuple):
     match_time_ms: float
 
 
-def _capacity(n: int, config: TripletConfig) -> int:
+def query_capacity(n: int, config: TripletConfig) -> int:
+    """The padded size (static) a query of ``n`` vertices runs at: ``config.query_capacity``, else
+    the next power of two >= 32 (queries of one size band share one compiled program)."""
     if config.query_capacity is not None:
         if n > config.query_capacity:
             raise ValueError(f"scan has {n} vertices, above query_capacity={config.query_capacity}")
@@ -93,7 +96,7 @@ def localize_scan(
     n = points.shape[0]
     if n < 3:
         return invalid_result()
-    capacity = _capacity(n, config)
+    capacity = query_capacity(n, config)
     positions = np.array([classes.index(int(label)) for label in labels], np.int32)
     padded_points = np.zeros((capacity, 3), np.float32)
     padded_points[:n] = points
@@ -102,23 +105,23 @@ def localize_scan(
     mask = np.arange(capacity) < n
 
     start = time.perf_counter()
+    query = (jnp.asarray(padded_points), jnp.asarray(padded_classes), jnp.asarray(mask))
+    # With the compilation cache on, both programs are traced once per machine (cached_call).
     descriptors, descriptor_valid = jax.block_until_ready(
-        describe_query(
-            jnp.asarray(padded_points),
-            jnp.asarray(padded_classes),
-            jnp.asarray(mask),
-            config.descriptor,
-        )
+        cached_call("describe_query", describe_query, tuple, *query, config.descriptor)
     )
     middle = time.perf_counter()
     out = jax.block_until_ready(
-        register_query(
+        cached_call(
+            "register_query",
+            register_query,
+            lambda outputs: QueryOutput(*outputs),
             triplet_map,
-            jnp.asarray(padded_points),
-            jnp.asarray(padded_classes),
+            query[0],
+            query[1],
             descriptors,
             descriptor_valid,
-            jnp.asarray(mask),
+            query[2],
         )
     )
     end = time.perf_counter()

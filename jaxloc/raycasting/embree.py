@@ -43,24 +43,33 @@ class _EmbreeMap:
             TriangleMesh(self.scene, np.ascontiguousarray(triangles[self.ids], np.float32))
 
     def nearest(
-        self, origins: np.ndarray, directions: np.ndarray, faces: np.ndarray | None = None
-    ) -> np.ndarray:
-        """Nearest triangle (R,) int32 (map index, -1 on a miss) of finite rays (R, 3) float32,
-        written into ``faces`` (R,) int32 when given (and returned).
+        self, origins: np.ndarray, directions: np.ndarray, out: tuple | None = None
+    ) -> tuple:
+        """Nearest hits of finite rays (R, 3) float32: ``(faces,)``, or ``(faces, t, u, v)`` when
+        ``out`` holds four arrays, written into ``out`` when given (and returned).
 
-        The rays are cut into contiguous slices (views, no copy), traced on the thread pool.
+        ``faces`` (R,) int32 map index (-1 on a miss); ``t``, ``u``, ``v`` (R,) float32 Embree's
+        hit distance and barycentric coordinates (the weights of the triangle's second and third
+        corners), meaningless where ``faces`` is -1. The rays are cut into contiguous slices
+        (views, no copy), traced on the thread pool.
         """
         num = origins.shape[0]
-        if faces is None:
-            faces = np.empty(num, np.int32)
+        if out is None:
+            out = (np.empty(num, np.int32),)
+        faces = out[0]
         faces[:] = -1
         if num == 0 or self.ids.size == 0:
-            return faces
+            return out
         parts = max(1, min(4 * embree_threads(), num // EMBREE_BATCH))
         bounds = np.linspace(0, num, parts + 1).astype(int)
 
         def run(part: slice) -> None:
-            found = self.scene.run(origins[part], directions[part])
+            if len(out) == 1:
+                found = self.scene.run(origins[part], directions[part])
+            else:  # raw values: the caller masks the misses (faces -1)
+                info = self.scene.run(origins[part], directions[part], output=1)
+                found = info["primID"]
+                out[1][part], out[2][part], out[3][part] = info["tfar"], info["u"], info["v"]
             faces[part] = found if self.prefix else np.where(found >= 0, self.ids[found], -1)
 
         if parts == 1:
@@ -68,7 +77,7 @@ class _EmbreeMap:
         else:
             slices = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
             list(_thread_pool().map(run, slices))
-        return faces
+        return out
 
 
 _embree_maps = StructureCache(_EmbreeMap)
@@ -86,13 +95,14 @@ def _thread_pool() -> concurrent.futures.ThreadPoolExecutor:
     return concurrent.futures.ThreadPoolExecutor(embree_threads(), "jaxloc-embree")
 
 
-def _embree_host(key, triangles, origins, directions, valid, out=None):
+def _embree_host(key, triangles, origins, directions, valid, out=None, values=False):
     """The host side of the Embree engine, batched the ``expand_dims`` way (see pure_callback).
 
     Shapes: key (*L1, 2), triangles (*L2, T, 3, 3), origins and directions (*L3, R, 3) (finite),
-    valid (*L4, R), with size-1 axes where an argument is not batched; returns (*L, R) int32 for
-    L the broadcast batch shape, written into ``out`` when given. Only the valid rays are traced
-    (the others miss).
+    valid (*L4, R), with size-1 axes where an argument is not batched; L is the broadcast batch
+    shape. Returns ``faces`` (*L, R) int32, or with ``values`` the tuple ``(faces, t, u, v)`` with
+    (*L, R) float32 values (see :meth:`_EmbreeMap.nearest`), written into ``out`` when given.
+    Only the valid rays are traced (the others miss).
     """
     # The callback receives jax Arrays: one explicit conversion each (zero-copy on CPU).
     key, triangles, origins, directions, valid = map(
@@ -119,36 +129,71 @@ def _embree_host(key, triangles, origins, directions, valid, out=None):
     for i in range(size):
         groups.setdefault(key[i].tobytes(), []).append(i)
     if out is None:
-        out = np.empty(lead + (num_rays,), np.int32)
-    faces = out.reshape(-1)  # a view: out is contiguous
-    faces[:] = -1
+        dtypes = (np.int32, np.float32, np.float32, np.float32) if values else (np.int32,)
+        out = tuple(np.empty(lead + (num_rays,), dtype) for dtype in dtypes)
+    flat_out = tuple(o.reshape(-1) for o in out)  # views: out is contiguous
+    flat_out[0][:] = -1
     for fp, members in groups.items():
         embree_map = _embree_maps.get(("cpu", triangles.shape[1], fp), triangles[members[0]])
         if len(members) == size and valid.all():  # the usual case: no gather, no scatter
-            embree_map.nearest(origins, directions, faces)
+            embree_map.nearest(origins, directions, flat_out)
             continue
         rows = (np.asarray(members)[:, None] * num_rays + np.arange(num_rays)).reshape(-1)
         rays = rows[valid[rows]]
-        faces[rays] = embree_map.nearest(origins[rays], directions[rays])
-    return out
+        found = embree_map.nearest(
+            origins[rays], directions[rays], _empty_like(flat_out, rays.size)
+        )
+        for whole, part in zip(flat_out, found, strict=True):
+            whole[rays] = part
+    return out if values else out[0]
+
+
+def _empty_like(out: tuple, num: int) -> tuple:
+    """Fresh output arrays of ``num`` rays with the dtypes of ``out``."""
+    return tuple(np.empty(num, a.dtype) for a in out)
 
 
 def _embree_fill(_context, out, *args) -> None:
-    """``buffer_callback`` form of :func:`_embree_host`: writes into the output buffer."""
-    _embree_host(*args, out=np.asarray(out))
+    """``buffer_callback`` form of :func:`_embree_host`: writes into the output buffer(s)."""
+    if isinstance(out, tuple):
+        _embree_host(*args, out=tuple(np.asarray(o) for o in out), values=True)
+    else:
+        _embree_host(*args, out=(np.asarray(out),))
+
+
+def _embree_values_host(*args):
+    return _embree_host(*args, values=True)
+
+
+def _call(args: tuple, out, values: bool):
+    fill_in_place = jax.default_backend() == "cpu"
+    if fill_in_place:
+        # Host buffers in place: no copy of the rays in, none of the result out (3.24M rays:
+        # ~45 ms less than pure_callback, benchmarks/results/engines_cpu.md).
+        return buffer_callback(_embree_fill, out, vmap_method="expand_dims")(*args)
+    host = _embree_values_host if values else _embree_host
+    return jax.pure_callback(host, out, *args, vmap_method="expand_dims")
 
 
 def nearest_triangle(triangles: Array, origins: Array, directions: Array, valid: Array) -> Array:
     """Embree's nearest triangle (R,) int32 of each ray, -1 on a miss (see
     :func:`jaxloc.raycasting.engines.nearest_triangle`)."""
-    key = fingerprint(triangles)
     out = jax.ShapeDtypeStruct(origins.shape[:-1], jnp.int32)
-    args = (key, triangles, origins, directions, valid)
-    if jax.default_backend() == "cpu":
-        # Host buffers in place: no copy of the rays in, none of the result out (3.24M rays:
-        # ~45 ms less than pure_callback, benchmarks/results/engines_cpu.md).
-        return buffer_callback(_embree_fill, out, vmap_method="expand_dims")(*args)
-    return jax.pure_callback(_embree_host, out, *args, vmap_method="expand_dims")
+    return _call((fingerprint(triangles), triangles, origins, directions, valid), out, False)
+
+
+def nearest_hit(
+    triangles: Array, origins: Array, directions: Array, valid: Array
+) -> tuple[Array, Array, Array, Array]:
+    """Embree's nearest hit of each ray with the values Embree computes, for code that does not
+    differentiate (see :func:`jaxloc.raycasting.engines.nearest_hit`).
+
+    Returns ``(triangle, t, u, v)``: (R,) int32 (-1 on a miss) and (R,) float32 distance along the
+    direction and weights of the triangle's second and third corners, meaningless on a miss.
+    """
+    num = origins.shape[:-1]
+    out = (jax.ShapeDtypeStruct(num, jnp.int32),) + 3 * (jax.ShapeDtypeStruct(num, jnp.float32),)
+    return _call((fingerprint(triangles), triangles, origins, directions, valid), out, True)
 
 
 def clear_cache() -> None:

@@ -3,7 +3,10 @@
 An engine only *chooses* the triangle, on stop-gradient rays; :func:`jaxloc.raycast` then computes
 ``t``, the barycentric coordinates, the object id and every gradient with the same JAX code for all
 engines, so jit, vmap, ``lax.scan``, grads and the trace count behave identically (the DiffeRT
-pattern: a fast engine picks, JAX differentiates).
+pattern: a fast engine picks, JAX differentiates). Code that never differentiates (the filter,
+retrieval) asks ``raycast(..., differentiable=False)`` instead: Embree and Warp then hand back the
+distance and barycentric coordinates they computed anyway (:func:`nearest_hit`), and the JAX
+recompute is skipped; the ``"jax"`` engine keeps the recompute on both paths.
 
 * ``"jax"``: the BVH traversal of :mod:`jaxloc.raycasting.traversal`; portable to any backend, no
   optional
@@ -88,6 +91,21 @@ def nearest_triangle(
         valid: (R,) bool; the other rays are not traced and miss.
     """
     search = embree.nearest_triangle if engine == "embree" else warp.nearest_triangle
+    return search(triangles, origins, directions, valid)
+
+
+def nearest_hit(
+    engine: str, triangles: Array, origins: Array, directions: Array, valid: Array
+) -> tuple[Array, Array, Array, Array]:
+    """The nearest hit of each ray with the distance and barycentric coordinates the engine itself
+    computed, for "embree" / "warp" (the values-only path of :func:`jaxloc.raycast`).
+
+    Arguments as :func:`nearest_triangle` (unit directions, so ``t`` is metric). Returns
+    ``(triangle, t, u, v)``: (R,) int32 map index (-1 on a miss) and (R,) float32 distance and
+    weights of the triangle's second and third corners, meaningless on a miss. Not
+    differentiable (a host or kernel call): :func:`jaxloc.raycast` stops the gradients first.
+    """
+    search = embree.nearest_hit if engine == "embree" else warp.nearest_hit
     return search(triangles, origins, directions, valid)
 
 

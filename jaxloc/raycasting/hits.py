@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from jaxloc.raycasting.bvh import BVHScene
-from jaxloc.raycasting.engines import nearest_triangle, resolve_engine
+from jaxloc.raycasting.engines import nearest_hit, nearest_triangle, resolve_engine
 from jaxloc.raycasting.traversal import DEFAULT_CHUNK, nearest_leaf_triangles
 from jaxloc.raycasting.triangle import DET_EPS, moller_trumbore
 
@@ -112,12 +112,25 @@ def hit_triangles(
     return nearest_leaf_triangles(scene, origins, directions, valid, packet_size, chunk_size)
 
 
+def _engine_values(
+    scene: BVHScene, origins: Array, directions: Array, valid: Array, engine: str
+) -> tuple[Array, Array, Array]:
+    """The values-only hits of ``engine`` ("embree" / "warp"): triangle (R,), ``t`` (R,) and
+    barycentric (R, 3) as the engine computed them, padding triangles reported as misses."""
+    triangle, t, u, v = nearest_hit(engine, scene.triangles, origins, directions, valid)
+    real = scene.triangle_object[jnp.clip(triangle, 0, scene.triangles.shape[0] - 1)] >= 0
+    hit = valid & (triangle >= 0) & real
+    bary = jnp.where(hit[:, None], jnp.stack([1.0 - u - v, u, v], -1), 0.0)
+    return jnp.where(hit, triangle, -1), jnp.where(hit, t, jnp.inf), bary
+
+
 def raycast(
     scene: BVHScene,
     origins: Array,
     directions: Array,
     *,
     engine: str = "auto",
+    differentiable: bool = True,
     packet_size: int = 1,
     chunk_size: int = DEFAULT_CHUNK,
 ) -> RayHit:
@@ -132,6 +145,13 @@ def raycast(
             on a CPU backend, Warp on a GPU backend where installed, else JAX); see
             :mod:`jaxloc.raycasting.engines`. ``t``, the barycentric coordinates, the object and
             the gradients are computed by the same JAX code whatever the engine.
+        differentiable: static. True (the default): ``t`` and the barycentric coordinates are
+            recomputed in JAX from the hit triangle, with gradients to ``origins`` and
+            ``directions``. False, for code that only needs the values (the filter, retrieval):
+            the ``"embree"`` and ``"warp"`` engines hand back the values they computed and the
+            recompute is skipped (``"jax"`` recomputes as before); the same hits, ``t`` and
+            barycentric coordinates to float rounding, and no gradient (the inputs are
+            stop-gradient: derivatives through this path are zero).
         packet_size: consecutive rays that traverse the tree together (static, ``"jax"`` engine).
             Exact for any value; packets of 8 to 16 pay off when consecutive rays are coherent,
             e.g. a 2 x 4 or 4 x 4 tile of one camera's rays, and 1 suits unrelated rays.
@@ -158,19 +178,23 @@ def raycast(
     d, ok = _safe_normalize(jnp.broadcast_to(directions, shape).reshape(-1, 3))
     ok &= jnp.all(jnp.isfinite(o), axis=1)
     o_search = jax.lax.stop_gradient(jnp.where(ok[:, None], o, 0.0))
-    triangle = hit_triangles(
-        scene, o_search, jax.lax.stop_gradient(d), ok, engine, packet_size, chunk_size
-    )
+    d_search = jax.lax.stop_gradient(d)
+    if not differentiable and engine != "jax":
+        triangle, t, bary = _engine_values(scene, o_search, d_search, ok, engine)
+    else:
+        triangle = hit_triangles(scene, o_search, d_search, ok, engine, packet_size, chunk_size)
+        # Ids are in [-1, T), so the clamped gather is always in bounds.
+        rows = scene.triangles.reshape(-1, 9)
+        corners = rows.at[jnp.maximum(triangle, 0)].get(mode="promise_in_bounds")  # (R, 9)
+        if not differentiable:
+            o, d = o_search, d_search
+        t, bary = _differentiable_hit(
+            [o[:, a] for a in range(3)],
+            [d[:, a] for a in range(3)],
+            [corners[:, k] for k in range(9)],
+            triangle >= 0,
+        )
     hit = triangle >= 0
-    # Ids are in [-1, T), so the clamped gather is always in bounds.
-    rows = scene.triangles.reshape(-1, 9)
-    corners = rows.at[jnp.maximum(triangle, 0)].get(mode="promise_in_bounds")  # (R, 9)
-    t, bary = _differentiable_hit(
-        [o[:, a] for a in range(3)],
-        [d[:, a] for a in range(3)],
-        [corners[:, k] for k in range(9)],
-        hit,
-    )
     object_id = jnp.where(hit, scene.triangle_object[jnp.maximum(triangle, 0)], -1)
     lead = shape[:-1]
     return RayHit(

@@ -43,6 +43,36 @@ def _warp():
                 face = ids[query.face]
         faces[i] = face
 
+    @wp.kernel
+    def nearest_face_values(
+        mesh: wp.uint64,
+        ids: wp.array(dtype=wp.int32),
+        origins: wp.array(dtype=wp.vec3),
+        directions: wp.array(dtype=wp.vec3),
+        valid: wp.array(dtype=wp.int32),
+        faces: wp.array(dtype=wp.int32),
+        distances: wp.array(dtype=wp.float32),
+        first: wp.array(dtype=wp.float32),
+        second: wp.array(dtype=wp.float32),
+    ):
+        i = wp.tid()
+        face = int(-1)  # noqa: UP018 (Warp variables that the branches below may assign)
+        distance = float(0.0)  # noqa: UP018
+        u = float(0.0)  # noqa: UP018
+        v = float(0.0)  # noqa: UP018
+        if valid[i] != 0:
+            query = wp.mesh_query_ray(mesh, origins[i], directions[i], 1.0e30)
+            if query.result:
+                face = ids[query.face]
+                distance = query.t
+                # Warp weighs the corners (u, v, 1 - u - v); jaxloc (1 - u - v, u, v) as Embree.
+                u = query.v
+                v = 1.0 - query.u - query.v
+        faces[i] = face
+        distances[i] = distance
+        first[i] = u
+        second[i] = v
+
     def build(vertices):
         """The Warp mesh of the map's real triangles (vertices (3T, 3) on the device)."""
         triangles = vertices.numpy().reshape(-1, 3, 3)
@@ -57,6 +87,10 @@ def _warp():
 
     meshes = StructureCache(build)
 
+    def mesh_of(key, vertices):
+        cache_key = (str(vertices.device), vertices.shape[0], key.numpy().tobytes())
+        return meshes.get(cache_key, vertices)[:2]
+
     def search(
         key: wp.array(dtype=wp.uint32),
         vertices: wp.array(dtype=wp.vec3),
@@ -65,8 +99,7 @@ def _warp():
         valid: wp.array(dtype=wp.int32),
         faces: wp.array(dtype=wp.int32),
     ):
-        cache_key = (str(vertices.device), vertices.shape[0], key.numpy().tobytes())
-        mesh, ids = meshes.get(cache_key, vertices)[:2]
+        mesh, ids = mesh_of(key, vertices)
         wp.launch(
             nearest_face,
             dim=origins.shape[0],
@@ -75,19 +108,43 @@ def _warp():
             device=origins.device,
         )
 
-    callable_ = wp.jax_callable(
-        search, graph_mode=wp.JaxCallableGraphMode.NONE, vmap_method="sequential"
-    )
-    return callable_, meshes
+    def search_values(
+        key: wp.array(dtype=wp.uint32),
+        vertices: wp.array(dtype=wp.vec3),
+        origins: wp.array(dtype=wp.vec3),
+        directions: wp.array(dtype=wp.vec3),
+        valid: wp.array(dtype=wp.int32),
+        faces: wp.array(dtype=wp.int32),
+        distances: wp.array(dtype=wp.float32),
+        first: wp.array(dtype=wp.float32),
+        second: wp.array(dtype=wp.float32),
+    ):
+        mesh, ids = mesh_of(key, vertices)
+        wp.launch(
+            nearest_face_values,
+            dim=origins.shape[0],
+            inputs=[mesh.id, ids, origins, directions, valid],
+            outputs=[faces, distances, first, second],
+            device=origins.device,
+        )
+
+    def jax_callable(function, num_outputs):
+        return wp.jax_callable(
+            function,
+            num_outputs=num_outputs,
+            graph_mode=wp.JaxCallableGraphMode.NONE,
+            vmap_method="sequential",
+        )
+
+    return jax_callable(search, 1), jax_callable(search_values, 4), meshes
 
 
 def nearest_triangle(triangles: Array, origins: Array, directions: Array, valid: Array) -> Array:
     """Warp's nearest triangle (R,) int32 of each ray, -1 on a miss (see
     :func:`jaxloc.raycasting.engines.nearest_triangle`)."""
-    key = fingerprint(triangles)
-    callable_, _ = _warp()
-    (faces,) = callable_(
-        key,
+    search = _warp()[0]
+    (faces,) = search(
+        fingerprint(triangles),
         triangles.reshape(-1, 3),
         origins,
         directions,
@@ -97,7 +154,26 @@ def nearest_triangle(triangles: Array, origins: Array, directions: Array, valid:
     return faces
 
 
+def nearest_hit(
+    triangles: Array, origins: Array, directions: Array, valid: Array
+) -> tuple[Array, Array, Array, Array]:
+    """Warp's nearest hit ``(triangle, t, u, v)`` of each ray with the values Warp computes (see
+    :func:`jaxloc.raycasting.embree.nearest_hit`; ``u``, ``v`` in jaxloc's corner order)."""
+    search_values = _warp()[1]
+    num = origins.shape[0]
+    return tuple(
+        search_values(
+            fingerprint(triangles),
+            triangles.reshape(-1, 3),
+            origins,
+            directions,
+            valid.astype(jnp.int32),
+            output_dims={"faces": num, "distances": num, "first": num, "second": num},
+        )
+    )
+
+
 def clear_cache() -> None:
     """Drop every cached Warp mesh (rebuilt on next use)."""
     if _warp.cache_info().currsize:
-        _warp()[1].clear()
+        _warp()[2].clear()

@@ -17,19 +17,46 @@ paper's coarse-to-fine rounds over a query :class:`Sequence`. The stages, one mo
 * :mod:`~jaxloc.sg2loc.figures`: the particles of every round over the map's floor plan.
 """
 
-from jaxloc.sg2loc import (
-    filter,
-    learn,
-    particles,
-    refine,
-    resampling,
-    retrieval,
-    scores,
-    sharded,
-)
-from jaxloc.sg2loc.localization import SG2LocConfig, SG2LocResult, carry_back, localize
-from jaxloc.sg2loc.rendering import Render, render, render_batch
-from jaxloc.sg2loc.sequence import Sequence
+from typing import TYPE_CHECKING
+
+from jaxloc._lazy import lazy_exports
+
+#: Public name -> the submodule that defines it (imported on first use: importing the package
+#: costs only what is used).
+_EXPORTS = {
+    "filter": "",
+    "learn": "",
+    "particles": "",
+    "refine": "",
+    "resampling": "",
+    "retrieval": "",
+    "scores": "",
+    "sharded": "",
+    "SG2LocConfig": "localization",
+    "SG2LocResult": "localization",
+    "carry_back": "localization",
+    "localize": "localization",
+    "Render": "rendering",
+    "render": "rendering",
+    "render_batch": "rendering",
+    "Sequence": "sequence",
+}
+__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+
+if TYPE_CHECKING:  # the lazy names, for type checkers and the API reference
+    from jaxloc.sg2loc import (
+        filter,
+        learn,
+        particles,
+        refine,
+        resampling,
+        retrieval,
+        scores,
+        sharded,
+    )
+    from jaxloc.sg2loc.localization import SG2LocConfig, SG2LocResult, carry_back, localize
+    from jaxloc.sg2loc.rendering import Render, render, render_batch
+    from jaxloc.sg2loc.sequence import Sequence
 
 __all__ = [
     "Render",

@@ -209,7 +209,16 @@ def frames_on_grid(sequence: Sequence, grid: RayGrid) -> Frame:
 
 def _score_poses(poses: Array, frame: Frame, scene: SceneGraph, config: StepConfig) -> Scores:
     """Render ``poses`` (M, 4) (NaN rows: skipped, their rays miss) and score them: (M,) each."""
-    views = render_batch(scene, poses, config.camera, config.grid, frame.tilt, engine=config.engine)
+    # The filter never differentiates: the engine's own hit values (raycast's values-only path).
+    views = render_batch(
+        scene,
+        poses,
+        config.camera,
+        config.grid,
+        frame.tilt,
+        engine=config.engine,
+        differentiable=False,
+    )
     match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
     h, w = config.grid.shape
     return jax.vmap(

@@ -124,7 +124,9 @@ def score_particles(
     ``engine`` (static) is the nearest-hit engine of the rendering (:func:`jaxloc.raycast`).
     Returns :class:`~jaxloc.sg2loc.scores.Scores` with (N,) float32 fields.
     """
-    views = render_batch(scene, poses, camera, grid, frame.tilt, engine=engine)
+    views = render_batch(
+        scene, poses, camera, grid, frame.tilt, engine=engine, differentiable=False
+    )
     match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
     h, w = grid.shape
     return jax.vmap(

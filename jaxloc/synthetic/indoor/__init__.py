@@ -31,6 +31,7 @@ from jaxloc.synthetic.indoor.config import (
     SensorConfig,
     TrajectoryConfig,
 )
+from jaxloc.synthetic.indoor.export import write_scannet_export
 from jaxloc.synthetic.indoor.merge import MergedRooms, merge_rooms
 from jaxloc.synthetic.indoor.rooms import (
     CLASS_NAMES,
@@ -61,4 +62,5 @@ __all__ = [
     "merge_rooms",
     "object_embeddings",
     "scene_graph",
+    "write_scannet_export",
 ]

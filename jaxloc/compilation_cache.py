@@ -1,0 +1,191 @@
+"""JAX's persistent compilation cache for jaxloc: compile once per machine, not once per process.
+
+The command line turns the cache on for every command (:func:`enable_compilation_cache`); in a
+notebook or script one call does the same::
+
+    import jaxloc
+    jaxloc.enable_compilation_cache()   # before the first jitted call
+
+Where: ``$JAXLOC_CACHE_DIR`` when set, else ``xla/`` in the user's cache folder (platformdirs:
+``~/.cache/jaxloc`` on Linux, ``~/Library/Caches/jaxloc`` on macOS,
+``%LOCALAPPDATA%\\jaxloc\\Cache`` on Windows). ``JAXLOC_NO_CACHE=1`` (or the command line's
+``--no-cache``) turns it off. The folder is bounded (:data:`DEFAULT_MAX_BYTES`, least recently used
+entries go first) and can be cleared at any time (:func:`clear_compilation_cache`, ``jaxloc cache
+--clear``): a missing entry is compiled again. Entries are keyed by JAX on the program, the JAX /
+jaxlib version, the backend and the compile options, so a cache shared by versions or machines
+never serves the wrong program; an unreadable or damaged entry is reported as a warning and the
+program is compiled instead.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from pathlib import Path
+
+#: Environment variable that moves the cache.
+ENV_DIR = "JAXLOC_CACHE_DIR"
+#: Environment variable that turns the cache off (any value but "", "0", "false", "no").
+ENV_OFF = "JAXLOC_NO_CACHE"
+#: Size bound of the cache folder in bytes (2 GiB); JAX evicts the least recently used entries.
+DEFAULT_MAX_BYTES = 2 * 1024**3
+#: In this process: the exported programs by key, the source digest ("source") and the folder
+#: :func:`enable_compilation_cache` turned on ("folder").
+_PROGRAMS: dict[str, object] = {}
+
+
+def cache_disabled() -> bool:
+    """Whether :data:`ENV_OFF` turns the cache off."""
+    return os.environ.get(ENV_OFF, "").strip().lower() not in ("", "0", "false", "no")
+
+
+def default_cache_dir() -> Path:
+    """``$JAXLOC_CACHE_DIR``, else ``<user cache folder>/jaxloc/xla`` (platformdirs)."""
+    if os.environ.get(ENV_DIR):
+        return Path(os.environ[ENV_DIR]).expanduser()
+    import platformdirs
+
+    return Path(platformdirs.user_cache_dir("jaxloc")) / "xla"
+
+
+def enable_compilation_cache(
+    path: str | os.PathLike | None = None,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+    min_compile_time_s: float = 0.0,
+) -> Path | None:
+    """Turn on JAX's persistent compilation cache in ``path`` (default :func:`default_cache_dir`).
+
+    Args:
+        path: the cache folder (created if missing).
+        max_bytes: the folder's size bound (JAX evicts the least recently used entries); -1 for
+            no bound.
+        min_compile_time_s: programs that compile faster than this are not cached (0: all; a
+            warm start then loads every program instead of compiling the small ones).
+
+    Returns:
+        The folder in use, or None when :data:`ENV_OFF` turns the cache off (nothing changes).
+    """
+    if cache_disabled():
+        return None
+    import jax
+
+    folder = Path(path).expanduser() if path is not None else default_cache_dir()
+    folder.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    jax.config.update("jax_compilation_cache_max_size", int(max_bytes))
+    _PROGRAMS["folder"] = folder
+    return folder
+
+
+def cache_size(path: str | os.PathLike | None = None) -> tuple[int, int]:
+    """(files, bytes) in the cache folder (0, 0 when it does not exist)."""
+    folder = Path(path) if path is not None else default_cache_dir()
+    if not folder.is_dir():
+        return 0, 0
+    files = [p for p in folder.rglob("*") if p.is_file()]
+    return len(files), sum(p.stat().st_size for p in files)
+
+
+def clear_compilation_cache(path: str | os.PathLike | None = None) -> int:
+    """Delete every file of the cache folder; returns how many (programs compile again)."""
+    folder = Path(path) if path is not None else default_cache_dir()
+    if not folder.is_dir():
+        return 0
+    count = 0
+    for file in folder.rglob("*"):
+        if file.is_file():
+            file.unlink()
+            count += 1
+    return count
+
+
+# ------------------------------------------------------------------ traced programs, kept on disk
+
+
+def _source_digest() -> str:
+    """A hash of jaxloc's own source files: a stored program belongs to the code that traced it."""
+    if "source" not in _PROGRAMS:
+        digest = hashlib.sha256()
+        for path in sorted(Path(__file__).parent.rglob("*.py")):
+            digest.update(path.read_bytes())
+        _PROGRAMS["source"] = digest.hexdigest()
+    return _PROGRAMS["source"]
+
+
+def _export(fn, leaves):
+    """``jax.export`` of ``fn``, allowing the custom calls (LAPACK's, on CPU) that export refuses
+    by default for want of a cross-version compatibility guarantee: a stored program is only ever
+    loaded by the same JAX and jaxlib versions (they are part of its key)."""
+    import re
+
+    import jax.export
+
+    try:
+        return jax.export.export(fn)(*leaves)
+    except ValueError as error:
+        targets = sorted(set(re.findall(r"custom_call @(\w+)\(", str(error))))
+        if not targets:
+            raise
+    allowed = [jax.export.DisabledSafetyCheck.custom_call(target) for target in targets]
+    return jax.export.export(fn, disabled_checks=allowed)(*leaves)
+
+
+def cache_enabled() -> bool:
+    """Whether :func:`enable_compilation_cache` turned the cache on in this process."""
+    return "folder" in _PROGRAMS and not cache_disabled()
+
+
+def cached_call(name: str, fn, rebuild, *args):
+    """``fn(*args)`` through a traced program kept in the cache folder (``jax.export``).
+
+    With the compilation cache on, the first call of a key traces ``fn`` once and stores the
+    exported program (``programs/<name>-<key>.jaxexport``); a later process loads it instead of
+    tracing again, and JAX's persistent cache then loads its compiled form: a warm start neither
+    traces nor compiles. The key covers the JAX and jaxlib versions, the backend, jaxloc's source
+    files, the arguments' tree structure, shapes and dtypes and their static (non-array) parts.
+    Without the cache, or for a file that does not load, ``fn`` is called (and traced) as usual.
+
+    Args:
+        name: the program's name (file names and errors).
+        fn: a function of pytrees of arrays and static values (jitted or not).
+        rebuild: builds ``fn``'s output from the flat tuple of its array leaves, in
+            ``jax.tree.leaves`` order (e.g. ``tuple``, or an ``eqx.Module`` class's constructor).
+        args: the arguments.
+    """
+    if not cache_enabled():
+        return fn(*args)
+    import equinox as eqx
+    import jax
+    import jax.export
+
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree.flatten(dynamic)
+    spec = [(tuple(x.shape), str(x.dtype)) for x in leaves]
+    device = jax.devices()[0]
+    text = repr((name, jax.__version__, jax.lib.__version__, device.platform, device.device_kind,
+                 _source_digest(), str(treedef), spec, static))  # fmt: skip
+    key = hashlib.sha256(text.encode()).hexdigest()[:32]
+    exported = _PROGRAMS.get(key)
+    path = _PROGRAMS["folder"] / "programs" / f"{name}-{key}.jaxexport"
+    if exported is None and path.is_file():
+        try:
+            exported = jax.export.deserialize(bytearray(path.read_bytes()))
+        except Exception:  # noqa: BLE001 - a damaged file: trace again
+            exported = None
+        if exported is not None and [(a.shape, str(a.dtype)) for a in exported.in_avals] != spec:
+            exported = None  # another program's file under this name: trace again
+    if exported is None:
+
+        def flat(*values):
+            call_args = eqx.combine(jax.tree.unflatten(treedef, values), static)
+            return tuple(jax.tree.leaves(fn(*call_args)))
+
+        exported = _export(jax.jit(flat), leaves)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        temporary = path.with_name(f".{path.name}.{os.getpid()}")
+        temporary.write_bytes(exported.serialize())
+        os.replace(temporary, path)  # atomic: a reader sees the old file or the whole new one
+    _PROGRAMS[key] = exported
+    return rebuild(exported.call(*leaves))

@@ -1,0 +1,119 @@
+"""jaxloc's compilation cache (jaxloc.compilation_cache) in fresh processes: used when enabled,
+never when disabled, and a damaged entry only costs a compilation; traced programs kept on disk
+(``cached_call``) are loaded instead of traced, and a damaged one is traced again. The command
+line's ``--help`` imports no JAX."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: A process that enables the cache (unless JAXLOC_NO_CACHE), compiles two small programs and one
+#: kept program, and reports the results, the persistent-cache hits and the traces.
+SCRIPT = """
+import json, sys
+import equinox as eqx
+import jax, jax.numpy as jnp
+import jaxloc
+from jaxloc.compilation_cache import cached_call
+
+folder = jaxloc.enable_compilation_cache(sys.argv[1])
+hits, traces = [], []
+jax.monitoring.register_event_listener(
+    lambda event, **kw: hits.append(event) if event.endswith("cache_hits") else None
+)
+
+class Scale(eqx.Module):
+    factor: jax.Array
+    power: int = eqx.field(static=True)
+
+@eqx.filter_jit
+def kept(scale, x):
+    traces.append(1)
+    return scale.factor * x**scale.power, jnp.cumsum(x)
+
+f = jax.jit(lambda x: jnp.sin(x) * 2 + jnp.cumsum(x))
+out = cached_call("kept", kept, tuple, Scale(jnp.float32(3.0), 2), jnp.arange(4.0))
+print(json.dumps({
+    "folder": None if folder is None else str(folder),
+    "f": f(jnp.arange(4.0)).tolist(),
+    "kept": [o.tolist() for o in out],
+    "hits": len(hits),
+    "traces": len(traces),
+}))
+"""
+
+
+def run(folder: Path, *, disabled: bool = False) -> tuple[dict, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION", "JAXLOC_"))}
+    if disabled:
+        env["JAXLOC_NO_CACHE"] = "1"
+    done = subprocess.run(
+        [sys.executable, "-c", SCRIPT, str(folder)], env=env, capture_output=True, text=True,
+        cwd=ROOT, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1]), done.stderr
+
+
+EXPECTED_F = [0.0, 2.6829419136047363, 4.818594932556152, 6.28223991394043]
+EXPECTED_KEPT = [[0.0, 3.0, 12.0, 27.0], [0.0, 1.0, 3.0, 6.0]]
+
+
+@pytest.fixture(scope="module")
+def warm(tmp_path_factory):
+    """(folder, first run, second run) of the script with the cache on."""
+    folder = tmp_path_factory.mktemp("cache") / "xla"
+    return folder, run(folder)[0], run(folder)[0]
+
+
+def test_the_cache_is_used_when_enabled(warm):
+    folder, first, second = warm
+    assert first["folder"] == str(folder) and any(folder.glob("*-cache"))
+    assert first["f"] == second["f"] == EXPECTED_F
+    assert first["kept"] == second["kept"] == EXPECTED_KEPT
+    assert first["hits"] == 0 and second["hits"] >= 2  # the second process loads, not compiles
+    assert first["traces"] == 1 and second["traces"] == 0  # the kept program is not traced again
+    assert len(list((folder / "programs").glob("kept-*.jaxexport"))) == 1
+
+
+def test_the_cache_is_never_used_when_disabled(tmp_path):
+    folder = tmp_path / "xla"
+    result, _ = run(folder, disabled=True)
+    assert result["folder"] is None and result["hits"] == 0 and result["traces"] == 1
+    assert result["f"] == EXPECTED_F and not folder.exists()
+
+
+def test_damaged_entries_cost_only_a_compilation(tmp_path):
+    """Every entry overwritten with garbage or truncated, a stray file in the folder, the kept
+    program damaged: the next run warns, compiles and traces again, and gives the same results.
+    (Entries are keyed with the folder's path, so the damage is done in place.)"""
+    folder = tmp_path / "xla"
+    run(folder)
+    entries = sorted(p for p in folder.rglob("*") if p.is_file() and not p.name.endswith("-atime"))
+    for index, entry in enumerate(entries):
+        data = entry.read_bytes()
+        entry.write_bytes(data[: len(data) // 3] if index % 2 else os.urandom(200))
+    (folder / "notes.txt").write_text("not an entry")
+    result, stderr = run(folder)
+    assert result["f"] == EXPECTED_F and result["kept"] == EXPECTED_KEPT
+    assert result["hits"] == 0 and result["traces"] == 1
+    assert "Error reading persistent compilation cache entry" in stderr
+
+
+def test_help_imports_no_jax():
+    code = (
+        "import sys\nfrom jaxloc.cli import main\n"
+        "for argv in (['--help'], ['localize-lidar', '--help'], ['localize-camera', '--help']):\n"
+        "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
+        "assert 'jax' not in sys.modules, 'jax imported'\nprint('ok')"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]
