@@ -18,6 +18,7 @@ import pytest
 from _helipr_fixtures import FIRST_STAMP, PERIOD_NS, ns_to_seconds, tum_line, write_helipr_sequence
 
 from jaxloc.cli import main
+from jaxloc.io import load_lidar_sequence
 from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
 from jaxloc.synthetic.outdoor import make_outdoor_world
 
@@ -341,3 +342,33 @@ def test_poses_out_leaves_invalid_scans_out_of_tum_only(tmp_path, capsys):
     write_poses_out(args, numbered, results)
     kitti = read_kitti_poses_file(str(tmp_path / "k.txt"))
     np.testing.assert_array_equal(np.asarray(kitti.poses_se3), [moved, np.eye(4), moved])
+
+
+def test_accumulate_fuses_the_last_scans_through_odometry(built, sequence_dir, tmp_path, capsys):
+    """--accumulate 3 localizes each scan with the two before it (odometry: the sequence's poses,
+    or the same poses from --odometry, with the same results); bad values exit 2."""
+    saved = built[1]
+    argv = [sequence_dir, "--every", "5", "--json", "--no-progress", "--accumulate", "3"]
+    code, out, err = run(["localize-lidar", saved, *argv], capsys)
+    assert code == 0, err
+    fused = json.loads(out)
+    scans = fused["scans"]
+    assert [s.get("fused_scans", 1) for s in scans] == [1, 2, 3, 3]
+    for record in scans[1:]:
+        assert record["instances"] < record["fused_instances"]
+    assert fused["summary"]["success_rate"] >= 0.75, scans
+    # --odometry: LiDAR-frame poses (poses.txt holds KITTI's cam0 poses), one per scan localized
+    poses = load_lidar_sequence(sequence_dir).T_map_scan[::5]
+    odometry = tmp_path / "odometry.txt"
+    np.savetxt(odometry, poses[:, :3].reshape(len(poses), 12))
+    code, out, err = run(["localize-lidar", saved, *argv, "--odometry", odometry], capsys)
+    assert code == 0, err
+    again = json.loads(out)["scans"]
+    for a, b in zip(scans, again, strict=True):
+        assert a["T_map_scan"] == b["T_map_scan"] and a["valid"] == b["valid"]
+    for bad, message in (
+        (["--accumulate", "0"], "--accumulate must be >= 1"),
+        (["--odometry", odometry], "only used with --accumulate"),
+    ):
+        code, _, err = run(["localize-lidar", saved, sequence_dir, *bad], capsys)
+        assert code == 2 and message in err, err

@@ -191,6 +191,21 @@ def build_parser() -> argparse.ArgumentParser:
     lidar.add_argument(
         "--every", type=int, default=1, help="of a sequence folder, every N-th scan (default 1)"
     )
+    lidar.add_argument(
+        "--accumulate",
+        type=int,
+        default=1,
+        metavar="K",
+        help="localize each scan with the instances of the last K scans fused through odometry "
+        "(default 1: each scan alone)",
+    )
+    lidar.add_argument(
+        "--odometry",
+        type=Path,
+        metavar="FILE",
+        help="odometry for --accumulate: poses in any format --gt takes (default: the sequence's "
+        "own poses)",
+    )
     lidar.add_argument("--save-map", type=Path, metavar="FILE", help="save the described map")
     lidar.add_argument("--json", action="store_true", help="print one JSON document instead")
     lidar.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -249,6 +249,41 @@ def localize_one(triplet_map, scan: ScanInstances):
     return result, max(first - (time.perf_counter() - start), 0.0)
 
 
+def window_odometry(refs: list[ScanRef], args: argparse.Namespace) -> np.ndarray | None:
+    """(S, 4, 4) odometry poses of the scans for ``--accumulate K > 1`` (None for K = 1):
+    ``--odometry FILE`` (matched to the scans like ``--gt``), else the sequence's own poses."""
+    if args.accumulate < 1:
+        raise InputError(f"--accumulate must be >= 1, got {args.accumulate}")
+    if args.odometry is not None and args.accumulate == 1:
+        raise InputError("--odometry is only used with --accumulate K > 1")
+    if args.accumulate == 1:
+        return None
+    if args.odometry is not None:
+        refs = attach_ground_truth(refs, args.odometry)
+    missing = [ref.path.name for ref in refs if ref.T_gt is None]
+    if missing:
+        where = "--odometry" if args.odometry is not None else "the sequence's poses"
+        raise InputError(
+            f"--accumulate needs a pose for every scan; {where} has none for "
+            f"{len(missing)} scan(s) (first: {missing[0]}); give --odometry FILE"
+        )
+    return np.stack([ref.T_gt for ref in refs])
+
+
+def localize_fused(triplet_map, window: list[ScanInstances], poses: np.ndarray):
+    """Localize the newest scan of ``window`` (newest first) through the fused submap of the
+    window (as :func:`jaxloc.m2loc.localize_window`); ``poses`` (K', 4, 4) odometry poses, newest
+    first (at least as many as the window). Returns the result, the compile or load time of its
+    size band and the number of fused instances."""
+    from jaxloc.m2loc import fuse_scans
+
+    newest = np.linalg.inv(poses[0])
+    relative = np.stack([newest @ pose for pose in poses[: len(window)]])
+    fused = fuse_scans([s.points for s in window], [s.labels for s in window], relative)
+    result, compile_s = localize_one(triplet_map, ScanInstances(fused.points, fused.labels, 0.0))
+    return result, compile_s, len(fused.points)
+
+
 def _scan_record(ref: ScanRef, scan: ScanInstances, result, compile_s: float) -> dict:
     from jaxloc.m2loc import localization_errors
 
@@ -320,16 +355,25 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
         f"{'with' if has_rsn else 'without'} road normals, "
         f"{'loaded' if args.map.is_file() else 'described'} in {build_s:.1f} s"
     )
+    odometry = window_odometry(refs, args)
     records, results = [], []
+    window: list[ScanInstances] = []
     show_bar = len(refs) > 1 and not args.no_progress
-    for ref in tqdm(refs, unit="scan", disable=not show_bar):
+    for i, ref in enumerate(tqdm(refs, unit="scan", disable=not show_bar)):
         scan = load_scan(ref, classes)
+        window = [scan, *window][: args.accumulate]  # newest first
         try:
-            result, compile_s = localize_one(triplet_map, scan)
+            if len(window) == 1:
+                result, compile_s = localize_one(triplet_map, scan)
+            else:
+                result, compile_s, fused = localize_fused(triplet_map, window, odometry[i::-1])
         except ValueError as error:  # duplicate points and the like: a problem of the scan
             raise InputError(f"{ref.path}: {error}") from error
         results.append(result)
         records.append(_scan_record(ref, scan, result, compile_s))
+        if len(window) > 1:
+            records[-1]["fused_scans"] = len(window)
+            records[-1]["fused_instances"] = fused
         if not args.json:
             tqdm.write(_format_record(records[-1]))
     if args.poses_out is not None:

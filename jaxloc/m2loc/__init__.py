@@ -6,7 +6,9 @@ descriptors (:func:`describe_points`, :func:`describe_map`) -> per-class top-k m
 (:func:`max_clique`) with M2Loc's dynamic enhancement (and, for small scans, verified clique
 hypotheses: :func:`best_verified_clique`) -> Kabsch + robust refinement with the
 road-surface-normal prior (:func:`register`). User entry points: :func:`build_map` and
-:func:`localize_scan` (one scan), :func:`localize_scans` (a batch over devices). TripletLoc is one
+:func:`localize_scan` (one scan), :func:`localize_scans` (a batch over devices),
+:func:`localize_window` (the fused instances of the last scans of a drive, :func:`fuse_scans`).
+TripletLoc is one
 configuration away (:func:`tripletloc_config`). Map files and the datasets' readers live in
 :mod:`jaxloc.io`; building instance maps from a labelled sequence in :mod:`jaxloc.mapping`.
 
@@ -14,9 +16,11 @@ Modules (private; everything public is re-exported here): ``_clusters`` (instanc
 ``_descriptors`` (triplet descriptors), ``_matching`` (matches, consistency graph), ``_clique``
 (maximum clique solvers), ``_hypotheses`` (verified clique hypotheses), ``_registration`` (pose),
 ``_config`` / ``_map`` / ``_query`` / ``_localization`` / ``_batch`` (the pipeline),
+``_accumulation`` (a window of scans fused through odometry),
 ``_evaluation`` (errors and success rates), ``_classes`` and ``_road_normals`` (shared types).
 """
 
+from jaxloc.m2loc._accumulation import MERGE_RADIUS, FusedScans, fuse_scans, localize_window
 from jaxloc.m2loc._batch import localize_scans
 from jaxloc.m2loc._classes import GRAPH_CLASSES, POLE, TRAFFIC_SIGN, TRUNK
 from jaxloc.m2loc._clique import (
@@ -64,6 +68,7 @@ from jaxloc.m2loc._road_normals import RoadNormals
 
 __all__ = [
     "GRAPH_CLASSES",
+    "MERGE_RADIUS",
     "POLE",
     "SUCCESS_RRE_DEG",
     "SUCCESS_RTE_M",
@@ -71,6 +76,7 @@ __all__ = [
     "TRUNK",
     "ClusterConfig",
     "DescriptorConfig",
+    "FusedScans",
     "Instances",
     "LocalizationResult",
     "MapGrid",
@@ -91,11 +97,13 @@ __all__ = [
     "euclidean_clusters",
     "fit_config_to_map",
     "fuse_instances",
+    "fuse_scans",
     "greedy_cliques",
     "grid_verified_fraction",
     "localization_errors",
     "localize_scan",
     "localize_scans",
+    "localize_window",
     "m2loc_config",
     "map_grid",
     "match_descriptors",

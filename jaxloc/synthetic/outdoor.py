@@ -220,25 +220,93 @@ def make_query(
     map_points = np.asarray(map_points, np.float64)
     cell = rng.integers(len(road_normals.xy))
     centre_xy = road_normals.xy[cell] + rng.uniform(-2.0, 2.0, 2)
+    pose = _sensor_pose(map_points, road_normals, cell, centre_xy, rng, tilt_noise_deg)
+    cut = _Cut(radius_range, drop_range, jitter_range, spurious_range, max_kept, classes)
+    return _cut_scan(map_points, map_labels, pose, rng, cut)
+
+
+def make_drive(
+    map_points: np.ndarray,
+    map_labels: np.ndarray,
+    road_normals: RoadNormals,
+    rng: np.random.Generator,
+    num_scans: int,
+    *,
+    spacing: float = 5.0,
+    tilt_noise_deg: float = 1.0,
+    **cut_options,
+) -> list[Query]:
+    """``num_scans`` consecutive scans of a drive, oldest first, each cut as :func:`make_query`.
+
+    The first pose is drawn as in :func:`make_query`; each next one is ``spacing`` metres further
+    along the heading (yaw plus a little steering noise), at the road cell nearest to it. Every
+    scan draws its own radius, drop, jitter and spurious vertices (independent noise per scan;
+    ``cut_options``: ``radius_range``, ``drop_range``, ``jitter_range``, ``spurious_range``,
+    ``max_kept``, ``classes``, as in :func:`make_query`);
+    ``T_map_scan`` of each is its ground truth, so ``inv(T_map_scan[j]) @ T_map_scan[i]`` is the
+    odometry between two scans.
+    """
+    map_points = np.asarray(map_points, np.float64)
+    cut = _Cut(**cut_options)
+    cell = rng.integers(len(road_normals.xy))
+    centre_xy = road_normals.xy[cell] + rng.uniform(-2.0, 2.0, 2)
+    heading = rng.uniform(-np.pi, np.pi)
+    scans = []
+    for _ in range(num_scans):
+        pose = _sensor_pose(map_points, road_normals, cell, centre_xy, rng, tilt_noise_deg, heading)
+        scans.append(_cut_scan(map_points, map_labels, pose, rng, cut))
+        heading += rng.normal(0.0, np.deg2rad(3.0))
+        centre_xy = centre_xy + spacing * np.array([np.cos(heading), np.sin(heading)])
+        cell = int(np.argmin(np.sum((road_normals.xy - centre_xy) ** 2, axis=1)))
+    return scans
+
+
+class _Cut(NamedTuple):
+    """How a scan is cut from the map (see :func:`make_query`)."""
+
+    radius_range: tuple[float, float] = (40.0, 60.0)
+    drop_range: tuple[float, float] = (0.5, 0.8)
+    jitter_range: tuple[float, float] = (0.2, 0.5)
+    spurious_range: tuple[float, float] = (0.1, 0.3)
+    max_kept: int | None = None
+    classes: tuple[int, ...] = GRAPH_CLASSES
+
+
+def _sensor_pose(map_points, road_normals, cell, centre_xy, rng, tilt_noise_deg, heading=None):
+    """(4, 4) T_map_scan of a sensor at ``centre_xy`` on road cell ``cell`` (yaw ``heading`` or
+    uniform), 1.8 m above the ground height (2 m under the median height of the map vertices
+    within 30 m), and that ground height."""
     planar = np.linalg.norm(map_points[:, :2] - centre_xy, axis=1)
     near = planar < 30.0
     z = float(np.median(map_points[near, 2])) if near.any() else float(np.median(map_points[:, 2]))
-    ground = z - 2.0
-    t = np.array([centre_xy[0], centre_xy[1], ground + 1.8])
     tilt = np.deg2rad(rng.normal(0.0, tilt_noise_deg, 2))
     small = _rotation_to(
         np.array([np.sin(tilt[0]), np.sin(tilt[1]), 1.0])
         / np.linalg.norm([np.sin(tilt[0]), np.sin(tilt[1]), 1.0])
     )
-    rotation = _rotation_to(road_normals.normals[cell]) @ small @ _rot_z(rng.uniform(-np.pi, np.pi))
-    radius = float(rng.uniform(*radius_range))
+    yaw = rng.uniform(-np.pi, np.pi) if heading is None else heading
+    ground = z - 2.0
+    T = np.eye(4)
+    T[:3, :3] = _rotation_to(road_normals.normals[cell]) @ small @ _rot_z(yaw)
+    T[:3, 3] = [centre_xy[0], centre_xy[1], ground + 1.8]
+    return T, ground
+
+
+def _cut_scan(map_points, map_labels, pose, rng, cut: _Cut) -> Query:
+    """The scan a sensor at ``pose = (T_map_scan, ground)`` sees: kept, jittered and spurious
+    vertices."""
+    T, ground = pose
+    rotation, t = T[:3, :3], T[:3, 3]
+    centre_xy = t[:2]
+    planar = np.linalg.norm(map_points[:, :2] - centre_xy, axis=1)
+    radius = float(rng.uniform(*cut.radius_range))
     visible = np.flatnonzero(planar < radius)
-    keep = visible[rng.random(visible.size) >= rng.uniform(*drop_range)]
-    if max_kept is not None and keep.size > max_kept:
-        keep = np.sort(rng.choice(keep, max_kept, replace=False))
-    jitter = float(rng.uniform(*jitter_range))
+    keep = visible[rng.random(visible.size) >= rng.uniform(*cut.drop_range)]
+    if cut.max_kept is not None and keep.size > cut.max_kept:
+        keep = np.sort(rng.choice(keep, cut.max_kept, replace=False))
+    jitter = float(rng.uniform(*cut.jitter_range))
     kept = map_points[keep] + rng.normal(0.0, jitter / np.sqrt(3.0), (keep.size, 3))
-    n_spurious = int(round(rng.uniform(*spurious_range) * keep.size))
+    n_spurious = int(round(rng.uniform(*cut.spurious_range) * keep.size))
     angle = rng.uniform(0, 2 * np.pi, n_spurious)
     r = radius * np.sqrt(rng.random(n_spurious))
     spurious = np.column_stack(
@@ -250,11 +318,9 @@ def make_query(
     )
     points_map = np.concatenate([kept, spurious])
     labels = np.concatenate(
-        [np.asarray(map_labels)[keep], rng.choice(np.asarray(classes), n_spurious)]
+        [np.asarray(map_labels)[keep], rng.choice(np.asarray(cut.classes), n_spurious)]
     ).astype(np.int32)
     index = np.concatenate([keep, np.full(n_spurious, -1)]).astype(np.int64)
     order = rng.permutation(points_map.shape[0])
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = rotation, t
     points_scan = (points_map[order] - t) @ rotation
     return Query(points_scan, labels[order], T, index[order], radius, jitter)

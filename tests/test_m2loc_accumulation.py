@@ -1,0 +1,129 @@
+"""Localizing a drive: the fused submap of a window of scans (jaxloc.m2loc.fuse_scans) against a
+numpy fusion by ground-truth object, and localize_window on synthetic drives of small scans."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxloc.m2loc import (
+    build_map,
+    fuse_scans,
+    localization_errors,
+    localize_scan,
+    localize_window,
+    m2loc_config,
+)
+from jaxloc.m2loc._query import TRACE_COUNTS
+from jaxloc.synthetic.outdoor import make_drive, make_outdoor_world
+
+
+def _relative(scans):
+    """(K, 4, 4) T_newest_scan of a drive given oldest first, in fuse_scans' newest-first order."""
+    newest = np.linalg.inv(scans[-1].T_map_scan)
+    return np.stack([newest @ s.T_map_scan for s in scans[::-1]])
+
+
+def _yaw_pose(rng, shift=20.0):
+    yaw = rng.uniform(-np.pi, np.pi)
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]]
+    T[:3, 3] = rng.uniform(-shift, shift, 3)
+    return T
+
+
+def test_fused_submap_matches_a_numpy_fusion_by_object():
+    """Objects >= 6 m apart seen by random subsets of 4 scans with 0.2 m noise: one fused
+    instance per object, at the mean of its observations, counted once per scan that saw it."""
+    rng = np.random.default_rng(0)
+    grid = np.stack(np.meshgrid(np.arange(6), np.arange(5)), -1).reshape(-1, 2) * 6.0
+    objects = np.column_stack([grid + rng.uniform(-1, 1, grid.shape), rng.uniform(0, 4, 30)])
+    classes = rng.choice([15, 17, 18], 30)
+    poses = [np.eye(4)] + [_yaw_pose(rng) for _ in range(3)]  # T_newest_scan, newest first
+    points, labels, seen_by = [], [], []
+    for pose in poses:
+        seen = np.flatnonzero(rng.random(30) < 0.6)
+        seen = rng.permutation(seen)
+        noisy = objects[seen] + rng.normal(0, 0.2, (seen.size, 3))
+        points.append((noisy - pose[:3, 3]) @ pose[:3, :3])  # in the scan's own frame
+        labels.append(classes[seen])
+        seen_by.append(seen)
+    fused = fuse_scans(points, labels, np.stack(poses), merge_radius=1.5)
+
+    # Reference: group the observations by the object they came from (ground truth ids).
+    sums, counts = np.zeros((30, 3)), np.zeros(30, int)
+    for pose, seen, p in zip(poses, seen_by, points, strict=True):
+        np.add.at(sums, seen, p @ pose[:3, :3].T + pose[:3, 3])
+        np.add.at(counts, seen, 1)
+    present = np.flatnonzero(counts)
+    reference = sums[present] / counts[present, None]
+    assert len(fused.points) == present.size
+    nearest = np.argmin(np.linalg.norm(fused.points[:, None] - reference[None], axis=-1), axis=1)
+    np.testing.assert_array_equal(np.sort(nearest), np.arange(present.size))
+    np.testing.assert_allclose(fused.points, reference[nearest], atol=1e-9)
+    np.testing.assert_array_equal(fused.labels, classes[present][nearest])
+    np.testing.assert_array_equal(fused.counts, counts[present][nearest])
+    assert fused.members.shape == (present.size, 4)
+
+
+def test_one_scan_fuses_to_itself_and_two_instances_of_one_scan_stay_two():
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-30, 30, (12, 3))
+    labels = rng.choice([15, 17], 12)
+    fused = fuse_scans([points], [labels], np.eye(4)[None])
+    np.testing.assert_array_equal(fused.points, points)
+    np.testing.assert_array_equal(fused.labels, labels)
+    # Two poles 0.5 m apart in one scan, both seen again by the next scan: still two objects.
+    pair = np.array([[0.0, 0.0, 1.0], [0.5, 0.0, 1.0]])
+    fused = fuse_scans([pair, pair + 0.05], [np.array([17, 17])] * 2, np.stack([np.eye(4)] * 2))
+    assert len(fused.points) == 2 and np.all(fused.counts == 2)
+
+
+def test_bad_windows_raise_clear_errors():
+    p, c = np.zeros((3, 3)), np.array([15, 15, 17])
+    with pytest.raises(ValueError, match="one labels array and one pose per scan"):
+        fuse_scans([p, p], [c], np.stack([np.eye(4)] * 2))
+    with pytest.raises(ValueError, match="finite"):
+        fuse_scans([np.full((3, 3), np.nan)], [c], np.eye(4)[None])
+    with pytest.raises(ValueError, match="rigid"):
+        fuse_scans([p], [c], 2 * np.eye(4)[None])
+    with pytest.raises(ValueError, match="integers"):
+        fuse_scans([p], [c.astype(float)], np.eye(4)[None])
+
+
+@pytest.fixture(scope="module")
+def world_and_map():
+    # The configuration of tests/test_m2loc_pipeline.py: one shared compiled query (capacity 64).
+    world = make_outdoor_world("dense", seed=3, blocks=2, bridge_length=150.0)
+    config = m2loc_config(num_scales=2, scale_edges=(20.0, 30.0), query_capacity=64)
+    return world, build_map(world.points, world.labels, config)
+
+
+def test_window_of_small_scans_localizes_the_newest_one_without_retrace(world_and_map):
+    """Drives of 13-vertex scans: the fused window of 3 localizes the newest scan (RTE < 7.5 m,
+    RRE < 10 deg, most inliers right), and windows of any length run one compiled program."""
+    world, triplet_map = world_and_map
+    rng = np.random.default_rng(11)
+    drives = [
+        make_drive(world.points, world.labels, world.road_normals, rng, 3, max_kept=13)
+        for _ in range(4)
+    ]
+    first = drives[0]
+    localize_scan(triplet_map, None, first[-1].points, first[-1].labels)  # compile, if needed
+    before = dict(TRACE_COUNTS)
+    good = 0
+    for scans in drives:
+        result, fused = localize_window(
+            triplet_map, [s.points for s in scans[::-1]], [s.labels for s in scans[::-1]],
+            _relative(scans),
+        )  # fmt: skip
+        assert len(fused.points) < sum(len(s.points) for s in scans)  # duplicates merged
+        rte, rre = localization_errors(result.pose, scans[-1].T_map_scan)
+        good += result.valid and rte < 7.5 and rre < 10
+        assert not result.valid or (rte < 7.5 and rre < 10)
+    assert good >= 3
+    two = drives[1][1:]
+    localize_window(
+        triplet_map, [s.points for s in two[::-1]], [s.labels for s in two[::-1]], _relative(two)
+    )
+    assert dict(TRACE_COUNTS) == before
