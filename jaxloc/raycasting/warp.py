@@ -16,7 +16,7 @@ from jaxloc.raycasting._cache import StructureCache, fingerprint, real_triangles
 
 @functools.cache
 def _warp():
-    """Warp, initialised quietly, and the one-ray kernel and JAX callable built on it."""
+    """Warp, initialised quietly, the one-ray kernel and its JAX callable, and the mesh cache."""
     import warp as wp
 
     level = wp.config.log_level
@@ -28,23 +28,6 @@ def _warp():
 
     @wp.kernel
     def nearest_face(
-        mesh: wp.uint64,
-        ids: wp.array(dtype=wp.int32),
-        origins: wp.array(dtype=wp.vec3),
-        directions: wp.array(dtype=wp.vec3),
-        valid: wp.array(dtype=wp.int32),
-        faces: wp.array(dtype=wp.int32),
-    ):
-        i = wp.tid()
-        face = int(-1)  # noqa: UP018 (a Warp variable that the branches below may assign)
-        if valid[i] != 0:
-            query = wp.mesh_query_ray(mesh, origins[i], directions[i], 1.0e30)
-            if query.result:
-                face = ids[query.face]
-        faces[i] = face
-
-    @wp.kernel
-    def nearest_face_values(
         mesh: wp.uint64,
         ids: wp.array(dtype=wp.int32),
         origins: wp.array(dtype=wp.vec3),
@@ -87,28 +70,7 @@ def _warp():
 
     meshes = StructureCache(build)
 
-    def mesh_of(key, vertices):
-        cache_key = (str(vertices.device), vertices.shape[0], key.numpy().tobytes())
-        return meshes.get(cache_key, vertices)[:2]
-
-    def search(
-        key: wp.array(dtype=wp.uint32),
-        vertices: wp.array(dtype=wp.vec3),
-        origins: wp.array(dtype=wp.vec3),
-        directions: wp.array(dtype=wp.vec3),
-        valid: wp.array(dtype=wp.int32),
-        faces: wp.array(dtype=wp.int32),
-    ):
-        mesh, ids = mesh_of(key, vertices)
-        wp.launch(
-            nearest_face,
-            dim=origins.shape[0],
-            inputs=[mesh.id, ids, origins, directions, valid],
-            outputs=[faces],
-            device=origins.device,
-        )
-
-    def search_values(
+    def launch(
         key: wp.array(dtype=wp.uint32),
         vertices: wp.array(dtype=wp.vec3),
         origins: wp.array(dtype=wp.vec3),
@@ -119,39 +81,29 @@ def _warp():
         first: wp.array(dtype=wp.float32),
         second: wp.array(dtype=wp.float32),
     ):
-        mesh, ids = mesh_of(key, vertices)
+        cache_key = (str(vertices.device), vertices.shape[0], key.numpy().tobytes())
+        mesh, ids = meshes.get(cache_key, vertices)[:2]
         wp.launch(
-            nearest_face_values,
+            nearest_face,
             dim=origins.shape[0],
             inputs=[mesh.id, ids, origins, directions, valid],
             outputs=[faces, distances, first, second],
             device=origins.device,
         )
 
-    def jax_callable(function, num_outputs):
-        return wp.jax_callable(
-            function,
-            num_outputs=num_outputs,
-            graph_mode=wp.JaxCallableGraphMode.NONE,
-            vmap_method="sequential",
-        )
-
-    return jax_callable(search, 1), jax_callable(search_values, 4), meshes
+    search = wp.jax_callable(
+        launch,
+        num_outputs=4,
+        graph_mode=wp.JaxCallableGraphMode.NONE,
+        vmap_method="sequential",
+    )
+    return search, meshes
 
 
 def nearest_triangle(triangles: Array, origins: Array, directions: Array, valid: Array) -> Array:
     """Warp's nearest triangle (R,) int32 of each ray, -1 on a miss (see
-    :func:`jaxloc.raycasting.engines.nearest_triangle`)."""
-    search = _warp()[0]
-    (faces,) = search(
-        fingerprint(triangles),
-        triangles.reshape(-1, 3),
-        origins,
-        directions,
-        valid.astype(jnp.int32),
-        output_dims={"faces": origins.shape[0]},
-    )
-    return faces
+    :func:`jaxloc.raycasting.engines.nearest_triangle`); the kernel's other outputs are unused."""
+    return nearest_hit(triangles, origins, directions, valid)[0]
 
 
 def nearest_hit(
@@ -159,10 +111,10 @@ def nearest_hit(
 ) -> tuple[Array, Array, Array, Array]:
     """Warp's nearest hit ``(triangle, t, u, v)`` of each ray with the values Warp computes (see
     :func:`jaxloc.raycasting.embree.nearest_hit`; ``u``, ``v`` in jaxloc's corner order)."""
-    search_values = _warp()[1]
+    search = _warp()[0]
     num = origins.shape[0]
     return tuple(
-        search_values(
+        search(
             fingerprint(triangles),
             triangles.reshape(-1, 3),
             origins,
@@ -176,4 +128,4 @@ def nearest_hit(
 def clear_cache() -> None:
     """Drop every cached Warp mesh (rebuilt on next use)."""
     if _warp.cache_info().currsize:
-        _warp()[2].clear()
+        _warp()[1].clear()
