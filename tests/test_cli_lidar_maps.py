@@ -372,3 +372,27 @@ def test_accumulate_fuses_the_last_scans_through_odometry(built, sequence_dir, t
     ):
         code, _, err = run(["localize-lidar", saved, sequence_dir, *bad], capsys)
         assert code == 2 and message in err, err
+
+
+def test_track_follows_the_sequence_after_the_first_fix(built, sequence_dir, capsys):
+    """--track: the first scan's global pose is confirmed by the second's, the next ones are
+    localized near the odometry prediction (the sequence's poses), each record saying how; the
+    poses agree with one-shot localization."""
+    folder = built[0]
+    argv = [sequence_dir, "--every", "5", "--no-progress", "--scales", "1", "--no-robust"]
+    code, out, err = run(["localize-lidar", folder, *argv, "--json"], capsys)
+    assert code == 0, err
+    alone = json.loads(out)["scans"]
+    code, out, err = run(["localize-lidar", folder, *argv, "--json", "--track"], capsys)
+    assert code == 0, err
+    tracked = json.loads(out)
+    modes = [s["track"] for s in tracked["scans"]]
+    assert modes == ["pending", "relocalized", "tracked", "tracked"]
+    assert tracked["summary"]["success_rate"] == 0.75  # the first pose waits for confirmation
+    for a, b in zip(alone, tracked["scans"], strict=True):
+        if a["valid"] and b["valid"]:
+            assert abs(a["rte_m"] - b["rte_m"]) < 0.3 and abs(a["rre_deg"] - b["rre_deg"]) < 1.0
+    code, out, _ = run(["localize-lidar", folder, *argv, "--track"], capsys)
+    assert code == 0
+    for words in ("pending, ", "relocalized, ", "tracked, ", "local associations"):
+        assert words in out

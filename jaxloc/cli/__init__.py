@@ -203,8 +203,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--odometry",
         type=Path,
         metavar="FILE",
-        help="odometry for --accumulate: poses in any format --gt takes (default: the sequence's "
-        "own poses)",
+        help="odometry for --accumulate and --track: poses in any format --gt takes (default: "
+        "the sequence's own poses)",
+    )
+    lidar.add_argument(
+        "--track",
+        action="store_true",
+        help="track the drive: after a verified pose, localize the next scans near the odometry "
+        "prediction (milliseconds), global localization when that fails",
     )
     lidar.add_argument("--save-map", type=Path, metavar="FILE", help="save the described map")
     lidar.add_argument("--json", action="store_true", help="print one JSON document instead")

@@ -51,6 +51,11 @@ Each SCAN is one of:
                  --every-th scan of it; its poses (poses.txt with calib.txt, or HeLiPR's
                  LiDAR_GT/<Sensor>_gt.txt) give the ground truth when --gt is not given
 
+With --track (odometry from --odometry or the sequence's poses), a scan after a verified pose is
+localized near the predicted pose in milliseconds (global localization when that fails); each
+record says "tracked", "relocalized", "lost" or "pending" (a global pose waiting for the next
+scan's to confirm it: not reported as valid).
+
 The map's descriptors are built once; every scan is then described, matched, and registered.
 Per scan it prints the 4x4 T_map_scan (p_map = T_map_scan @ p_scan), whether it is valid, the
 size of the maximum clique of consistent matches, and the times. The first scan of each
@@ -250,13 +255,15 @@ def localize_one(triplet_map, scan: ScanInstances):
 
 
 def window_odometry(refs: list[ScanRef], args: argparse.Namespace) -> np.ndarray | None:
-    """(S, 4, 4) odometry poses of the scans for ``--accumulate K > 1`` (None for K = 1):
-    ``--odometry FILE`` (matched to the scans like ``--gt``), else the sequence's own poses."""
+    """(S, 4, 4) odometry poses of the scans for ``--accumulate K > 1`` or ``--track`` (else
+    None): ``--odometry FILE`` (matched to the scans like ``--gt``), else the sequence's own
+    poses."""
     if args.accumulate < 1:
         raise InputError(f"--accumulate must be >= 1, got {args.accumulate}")
-    if args.odometry is not None and args.accumulate == 1:
-        raise InputError("--odometry is only used with --accumulate K > 1")
-    if args.accumulate == 1:
+    needed = args.accumulate > 1 or args.track
+    if args.odometry is not None and not needed:
+        raise InputError("--odometry is only used with --accumulate K > 1 or --track")
+    if not needed:
         return None
     if args.odometry is not None:
         refs = attach_ground_truth(refs, args.odometry)
@@ -264,24 +271,77 @@ def window_odometry(refs: list[ScanRef], args: argparse.Namespace) -> np.ndarray
     if missing:
         where = "--odometry" if args.odometry is not None else "the sequence's poses"
         raise InputError(
-            f"--accumulate needs a pose for every scan; {where} has none for "
+            f"--accumulate and --track need a pose for every scan; {where} has none for "
             f"{len(missing)} scan(s) (first: {missing[0]}); give --odometry FILE"
         )
     return np.stack([ref.T_gt for ref in refs])
 
 
-def localize_fused(triplet_map, window: list[ScanInstances], poses: np.ndarray):
-    """Localize the newest scan of ``window`` (newest first) through the fused submap of the
-    window (as :func:`jaxloc.m2loc.localize_window`); ``poses`` (K', 4, 4) odometry poses, newest
-    first (at least as many as the window). Returns the result, the compile or load time of its
-    size band and the number of fused instances."""
+def fuse_window(window: list[ScanInstances], poses: np.ndarray) -> ScanInstances:
+    """The fused submap of ``window`` (newest first) in the newest scan's frame (as
+    :func:`jaxloc.m2loc.localize_window`); ``poses`` (K', 4, 4) odometry poses, newest first (at
+    least as many as the window)."""
     from jaxloc.m2loc import fuse_scans
 
     newest = np.linalg.inv(poses[0])
     relative = np.stack([newest @ pose for pose in poses[: len(window)]])
     fused = fuse_scans([s.points for s in window], [s.labels for s in window], relative)
-    result, compile_s = localize_one(triplet_map, ScanInstances(fused.points, fused.labels, 0.0))
-    return result, compile_s, len(fused.points)
+    return ScanInstances(fused.points, fused.labels, 0.0)
+
+
+#: The names of :data:`jaxloc.m2loc.TRACKED`, ``RELOCALIZED``, ``LOST`` and ``PENDING`` in the
+#: records.
+TRACK_MODES = ("tracked", "relocalized", "lost", "pending")
+
+
+class DriveTracker:
+    """``--track``: a :class:`jaxloc.m2loc.Tracker` stepped scan by scan (one compiled step per
+    query size band; its first run in a band is run twice, the pure step from the same state, to
+    time the step alone)."""
+
+    def __init__(self, triplet_map):
+        from jaxloc.m2loc import Tracker
+
+        self.tracker = Tracker(triplet_map)
+        self.state = self.tracker.init()
+        self.bands: set[int] = set()
+
+    def step(self, scan: ScanInstances, T_prev_scan: np.ndarray):
+        """Returns a :class:`~jaxloc.m2loc.LocalizationResult` (``clique_size``: the local
+        associations), the mode's name and the compile or load time (s)."""
+        import jax
+
+        from jaxloc.m2loc import LocalizationResult, pad_scan, query_capacity, track_step
+
+        config = self.tracker.triplet_map.config
+        band = query_capacity(max(len(scan.points), 1), config)
+        padded = pad_scan(scan.points, scan.labels, config, band)
+
+        def run():
+            start = time.perf_counter()
+            out = jax.block_until_ready(track_step(self.tracker, self.state, padded, T_prev_scan))
+            return out, time.perf_counter() - start
+
+        (state, out), seconds = run()
+        compile_s = 0.0
+        if band not in self.bands:
+            self.bands.add(band)
+            (state, out), again = run()
+            compile_s, seconds = max(seconds - again, 0.0), again
+        self.state = state
+        result = LocalizationResult(
+            pose=np.asarray(out.T_map_scan, np.float64),
+            valid=bool(out.valid),
+            clique_size=int(out.num_associations),
+            inliers=np.zeros((0, 2), np.int64),
+            scales_used=0,
+            clique_exact=False,
+            num_associations=int(out.num_associations),
+            inlier_fraction=float(out.inlier_fraction),
+            descriptor_time_ms=0.0,
+            match_time_ms=1e3 * seconds,
+        )
+        return result, TRACK_MODES[int(out.mode)], compile_s
 
 
 def _scan_record(ref: ScanRef, scan: ScanInstances, result, compile_s: float) -> dict:
@@ -311,10 +371,12 @@ def _scan_record(ref: ScanRef, scan: ScanInstances, result, compile_s: float) ->
 
 def _format_record(record: dict) -> str:
     classes = ", ".join(f"{n} x {c}" for c, n in record["instances_per_class"].items())
+    how = f"clique {record['clique_size']}, scales used {record['scales_used']}"
+    if "track" in record:
+        how = f"{record['track']}, {record['clique_size']} local associations"
     lines = [
         f"{record['scan']}: {record['instances']} instances ({classes or 'none'}); "
-        f"{'valid' if record['valid'] else 'NOT valid'}, clique {record['clique_size']}, "
-        f"scales used {record['scales_used']}",
+        f"{'valid' if record['valid'] else 'NOT valid'}, {how}",
         "  T_map_scan =",
     ]
     lines += ["    " + " ".join(f"{v:12.4f}" for v in row) for row in record["T_map_scan"]]
@@ -322,6 +384,8 @@ def _format_record(record: dict) -> str:
         f"  time: load {record['load_ms']:.1f} ms, descriptors {record['descriptor_ms']:.1f} ms, "
         f"match + clique + pose {record['match_ms']:.1f} ms"
     )
+    if "track" in record:
+        timing = f"  time: load {record['load_ms']:.1f} ms, step {record['match_ms']:.1f} ms"
     if record["compile_s"]:
         timing += f" (first scan of this size: +{record['compile_s']:.1f} s compile or load)"
     lines.append(timing)
@@ -356,6 +420,7 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
         f"{'loaded' if args.map.is_file() else 'described'} in {build_s:.1f} s"
     )
     odometry = window_odometry(refs, args)
+    tracker = DriveTracker(triplet_map) if args.track else None
     records, results = [], []
     window: list[ScanInstances] = []
     show_bar = len(refs) > 1 and not args.no_progress
@@ -363,17 +428,21 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
         scan = load_scan(ref, classes)
         window = [scan, *window][: args.accumulate]  # newest first
         try:
-            if len(window) == 1:
-                result, compile_s = localize_one(triplet_map, scan)
+            query = scan if len(window) == 1 else fuse_window(window, odometry[i::-1])
+            if tracker is not None:
+                T_prev_scan = np.linalg.inv(odometry[i - 1]) @ odometry[i] if i else np.eye(4)
+                result, mode, compile_s = tracker.step(query, T_prev_scan)
             else:
-                result, compile_s, fused = localize_fused(triplet_map, window, odometry[i::-1])
+                result, compile_s = localize_one(triplet_map, query)
         except ValueError as error:  # duplicate points and the like: a problem of the scan
             raise InputError(f"{ref.path}: {error}") from error
         results.append(result)
         records.append(_scan_record(ref, scan, result, compile_s))
+        if tracker is not None:
+            records[-1]["track"] = mode
         if len(window) > 1:
             records[-1]["fused_scans"] = len(window)
-            records[-1]["fused_instances"] = fused
+            records[-1]["fused_instances"] = len(query.points)
         if not args.json:
             tqdm.write(_format_record(records[-1]))
     if args.poses_out is not None:

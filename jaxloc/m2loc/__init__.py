@@ -7,7 +7,8 @@ descriptors (:func:`describe_points`, :func:`describe_map`) -> per-class top-k m
 hypotheses: :func:`best_verified_clique`) -> Kabsch + robust refinement with the
 road-surface-normal prior (:func:`register`). User entry points: :func:`build_map` and
 :func:`localize_scan` (one scan), :func:`localize_scans` (a batch over devices),
-:func:`localize_window` (the fused instances of the last scans of a drive, :func:`fuse_scans`).
+:func:`localize_window` (the fused instances of the last scans of a drive, :func:`fuse_scans`),
+:class:`Tracker` (a drive tracked near the odometry prediction, global localization as fallback).
 TripletLoc is one
 configuration away (:func:`tripletloc_config`). Map files and the datasets' readers live in
 :mod:`jaxloc.io`; building instance maps from a labelled sequence in :mod:`jaxloc.mapping`.
@@ -16,7 +17,7 @@ Modules (private; everything public is re-exported here): ``_clusters`` (instanc
 ``_descriptors`` (triplet descriptors), ``_matching`` (matches, consistency graph), ``_clique``
 (maximum clique solvers), ``_hypotheses`` (verified clique hypotheses), ``_registration`` (pose),
 ``_config`` / ``_map`` / ``_query`` / ``_localization`` / ``_batch`` (the pipeline),
-``_accumulation`` (a window of scans fused through odometry),
+``_accumulation`` (a window of scans fused through odometry), ``_tracking`` (tracking a drive),
 ``_evaluation`` (errors and success rates), ``_classes`` and ``_road_normals`` (shared types).
 """
 
@@ -59,19 +60,41 @@ from jaxloc.m2loc._hypotheses import (
     grid_verified_fraction,
     map_grid,
 )
-from jaxloc.m2loc._localization import LocalizationResult, localize_scan, query_capacity
+from jaxloc.m2loc._localization import (
+    LocalizationResult,
+    PaddedScan,
+    localize_scan,
+    pad_scan,
+    query_capacity,
+)
 from jaxloc.m2loc._map import SmallMapWarning, TripletMap, build_map, fit_config_to_map
 from jaxloc.m2loc._matching import consistency_graph, match_descriptors
 from jaxloc.m2loc._query import QueryOutput, describe_query, register_query, verified_fraction
 from jaxloc.m2loc._registration import point_residuals, register, up_axis_prior, weighted_kabsch
 from jaxloc.m2loc._road_normals import RoadNormals
+from jaxloc.m2loc._tracking import (
+    LOST,
+    PENDING,
+    RELOCALIZED,
+    TRACKED,
+    TrackConfig,
+    Tracker,
+    TrackResult,
+    TrackState,
+    grid_nearest_same_class,
+    track_step,
+)
 
 __all__ = [
     "GRAPH_CLASSES",
+    "LOST",
     "MERGE_RADIUS",
+    "PENDING",
     "POLE",
+    "RELOCALIZED",
     "SUCCESS_RRE_DEG",
     "SUCCESS_RTE_M",
+    "TRACKED",
     "TRAFFIC_SIGN",
     "TRUNK",
     "ClusterConfig",
@@ -82,7 +105,12 @@ __all__ = [
     "MapGrid",
     "QueryOutput",
     "RoadNormals",
+    "PaddedScan",
     "SmallMapWarning",
+    "TrackConfig",
+    "TrackResult",
+    "TrackState",
+    "Tracker",
     "TripletConfig",
     "TripletMap",
     "best_verified_clique",
@@ -99,6 +127,7 @@ __all__ = [
     "fuse_instances",
     "fuse_scans",
     "greedy_cliques",
+    "grid_nearest_same_class",
     "grid_verified_fraction",
     "localization_errors",
     "localize_scan",
@@ -107,6 +136,7 @@ __all__ = [
     "m2loc_config",
     "map_grid",
     "match_descriptors",
+    "pad_scan",
     "max_clique",
     "max_clique_exact",
     "max_clique_with_info",
@@ -115,6 +145,7 @@ __all__ = [
     "register",
     "register_query",
     "summarize_localization",
+    "track_step",
     "tripletloc_config",
     "unpack_ranked",
     "up_axis_prior",

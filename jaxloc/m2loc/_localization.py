@@ -53,6 +53,61 @@ def query_capacity(n: int, config: TripletConfig) -> int:
     return max(32, 1 << (n - 1).bit_length())
 
 
+class PaddedScan(NamedTuple):
+    """A scan's instance centroids padded to a static capacity (:func:`pad_scan`).
+
+    Attributes:
+        points: (C, 3) float32 centroids, scan frame, metres (zeros past the real ones).
+        classes: (C,) int32 class positions (index into ``config.descriptor.classes``).
+        mask: (C,) bool, True for the real instances.
+    """
+
+    points: np.ndarray
+    classes: np.ndarray
+    mask: np.ndarray
+
+
+def _padded(points, labels, config: TripletConfig, capacity: int | None) -> PaddedScan:
+    """Validated (points, labels) padded to ``capacity`` (None: :func:`query_capacity`)."""
+    classes = config.descriptor.classes
+    n = points.shape[0]
+    if capacity is None:
+        capacity = query_capacity(max(n, 1), config)
+    elif n > capacity:
+        raise ValueError(f"scan has {n} instances, above the capacity {capacity}")
+    padded_points = np.zeros((capacity, 3), np.float32)
+    padded_points[:n] = points
+    padded_classes = np.zeros(capacity, np.int32)
+    padded_classes[:n] = [classes.index(int(label)) for label in labels]
+    return PaddedScan(padded_points, padded_classes, np.arange(capacity) < n)
+
+
+def pad_scan(
+    scan_points: np.ndarray,
+    scan_labels: np.ndarray,
+    config: TripletConfig,
+    capacity: int | None = None,
+) -> PaddedScan:
+    """Validate a scan's instances and pad them to a static size, for the jitted steps.
+
+    Args:
+        scan_points: (N, 3) instance centroids (scan frame, metres).
+        scan_labels: (N,) int class ids (from ``config.descriptor.classes``).
+        config: the map's configuration (``triplet_map.config``).
+        capacity: the padded size (None: :func:`query_capacity` of N, as :func:`localize_scan`);
+            stack scans of one capacity to ``lax.scan`` over them.
+
+    Returns:
+        A :class:`PaddedScan` of numpy arrays.
+
+    Raises:
+        ValueError: bad shapes, NaN/inf, unknown labels, duplicate points, more than ``capacity``.
+    """
+    classes = config.descriptor.classes
+    points, labels = check_points_labels(scan_points, scan_labels, classes, "scan")
+    return _padded(points, labels, config, capacity)
+
+
 def invalid_result() -> LocalizationResult:
     """The result of a scan too small to localize (``valid = False``, identity pose)."""
     no_pairs = np.zeros((0, 2), np.int64)
@@ -93,19 +148,10 @@ def localize_scan(
     config = triplet_map.config
     classes = config.descriptor.classes
     points, labels = check_points_labels(scan_points, scan_labels, classes, "scan")
-    n = points.shape[0]
-    if n < 3:
+    if points.shape[0] < 3:
         return invalid_result()
-    capacity = query_capacity(n, config)
-    positions = np.array([classes.index(int(label)) for label in labels], np.int32)
-    padded_points = np.zeros((capacity, 3), np.float32)
-    padded_points[:n] = points
-    padded_classes = np.zeros(capacity, np.int32)
-    padded_classes[:n] = positions
-    mask = np.arange(capacity) < n
-
     start = time.perf_counter()
-    query = (jnp.asarray(padded_points), jnp.asarray(padded_classes), jnp.asarray(mask))
+    query = tuple(jnp.asarray(a) for a in _padded(points, labels, config, None))
     # With the compilation cache on, both programs are traced once per machine (cached_call).
     descriptors, descriptor_valid = jax.block_until_ready(
         cached_call("describe_query", describe_query, tuple, *query, config.descriptor)
