@@ -34,6 +34,7 @@ from jaxloc.m2loc import (
     match_descriptors,
     max_clique_exact,
     max_clique_with_info,
+    pad_scan,
     register,
     register_query,
     tripletloc_config,
@@ -51,21 +52,10 @@ CONFIGS = {
 }
 
 
-def padded_query(q, config):
-    """(points (C, 3) float32, class positions (C,) int32, mask (C,) bool) as localize_scan pads."""
-    classes = config.descriptor.classes
-    cap = max(32, 1 << (len(q.points) - 1).bit_length())
-    pts = np.zeros((cap, 3), np.float32)
-    pts[: len(q.points)] = q.points
-    cls = np.zeros(cap, np.int32)
-    cls[: len(q.points)] = [classes.index(int(label)) for label in q.labels]
-    return pts, cls, np.arange(cap) < len(q.points)
-
-
 def graph_of(triplet_map, q, result_config):
     """Rebuild the final consistency graph of a query (numpy) for the exact solvers (the first
     registration attempt's graph when the configuration retries)."""
-    pts, cls, mask = padded_query(q, result_config)
+    pts, cls, mask = pad_scan(q.points, q.labels, result_config)
     d, v = describe_query(
         jnp.asarray(pts), jnp.asarray(cls), jnp.asarray(mask), result_config.descriptor
     )
@@ -135,7 +125,7 @@ def main() -> None:
             )
             for _ in range(args.queries)
         ]
-        by_capacity = {len(padded_query(q, config)[0]): q for q in queries}
+        by_capacity = {len(pad_scan(q.points, q.labels, config)[0]): q for q in queries}
         for q in by_capacity.values():  # compile every query capacity before timing
             localize_scan(triplet_map, None, q.points, q.labels)
         desc, match, ours, nx_ms, exact_ms, same, certified, sizes, assoc = ([] for _ in range(9))
@@ -225,7 +215,7 @@ def stage_profile(triplet_map, queries, config, clique_args):
     rows = {"matching": [], "graph + clique": [], "pose (no RSN prior)": [], "whole": []}
     tm = triplet_map
     for q in queries:
-        pts, cls, mask = (jnp.asarray(x) for x in padded_query(q, config))
+        pts, cls, mask = (jnp.asarray(x) for x in pad_scan(q.points, q.labels, config))
         d, v = describe_query(pts, cls, mask, config.descriptor)
         out = register_query(tm, pts, cls, d, v, mask)
         args = (d, v, cls, tm.descriptors, tm.valid, tm.classes, config.top_k)

@@ -151,8 +151,12 @@ def rows_of_map(args, only: str) -> list:
     """The rows of one map (run in a process of its own: a process that compiles every map's
     programs ran out of memory mappings on this machine)."""
     all_maps = list(maps())
+    names = [m[0] for m in all_maps]
+    needed = {only, names[(names.index(only) + 1) % len(names)]}  # its own and foreign drives
     drives, chains = {}, {}
     for name, points, labels, normals in all_maps:
+        if name not in needed:  # each map's drives come from a generator of their own
+            continue
         rng = np.random.default_rng(args.seed)
         drives[name] = [
             make_drive(points, labels, normals, rng, args.length, max_kept=args.max_kept)
