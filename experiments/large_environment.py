@@ -136,8 +136,9 @@ def report(rows: list[dict], args, command: str) -> None:
         f"{tuple(args.strides)}. Errors are of the final frame's MLE. `room found` = the final "
         "MLE lies inside the query's room (Table 11's R^t@1 for SG2Loc); Seq. SGL R@1 = the "
         "sequential SceneGraphLoc score ranks the query's room first among the environment's "
-        "rooms (the same queries). Timings are wall-clock on 2 shared, heavily loaded CPU cores; "
-        "the first run (a single room) includes the filter's compilation.",
+        "rooms (the same queries). Timings are wall-clock on "
+        f"{os.cpu_count()} CPU cores (load average {os.getloadavg()[0]:.2f} when the report was "
+        "written); the first run (a single room) includes the filter's compilation.",
         "",
         "| setting | sequences | mean init area (m^2) | room found | Seq. SGL R@1 | mean pos (m) "
         "| mean rot (deg) | med pos (m) | med rot (deg) | R@10cm,5deg | R@25cm,10deg "

@@ -15,12 +15,21 @@ entries go first) and can be cleared at any time (:func:`clear_compilation_cache
 jaxlib version, the backend and the compile options, so a cache shared by versions or machines
 never serves the wrong program; an unreadable or damaged entry is reported as a warning and the
 program is compiled instead.
+
+On some x86 CPUs (AMD Zen 4 here; Cascade Lake in jax-ml/jax#38445) jaxlib 0.9-0.10 logs two
+``E ... cpu_aot_loader.cc] Loading XLA:CPU AOT result. Target machine feature +prefer-no-gather is
+not supported ...`` lines for every program it loads from the cache: the compile-time features
+include LLVM tuning preferences the host check does not list. The program loads and runs (a
+second process of the same program skips compilation); only the log is wrong. The command line
+hides XLA's C++ log below FATAL (:func:`quiet_xla_log`) unless ``TF_CPP_MIN_LOG_LEVEL`` is set;
+in a notebook, set ``TF_CPP_MIN_LOG_LEVEL=3`` before importing jax to do the same.
 """
 
 from __future__ import annotations
 
 import hashlib
 import os
+import sys
 from pathlib import Path
 
 #: Environment variable that moves the cache.
@@ -37,6 +46,19 @@ _PROGRAMS: dict[str, object] = {}
 def cache_disabled() -> bool:
     """Whether :data:`ENV_OFF` turns the cache off."""
     return os.environ.get(ENV_OFF, "").strip().lower() not in ("", "0", "false", "no")
+
+
+def quiet_xla_log() -> bool:
+    """Hide XLA's C++ log below FATAL in this process (``TF_CPP_MIN_LOG_LEVEL=3``), where that
+    can still take effect (jax not imported yet) and the user has not chosen a level.
+
+    Why: the spurious ``cpu_aot_loader`` errors of every cached program (module docstring).
+    XLA's real failures still reach the caller as Python exceptions. Returns whether it did.
+    """
+    if "jax" in sys.modules or "TF_CPP_MIN_LOG_LEVEL" in os.environ:
+        return False
+    os.environ["TF_CPP_MIN_LOG_LEVEL"] = "3"
+    return True
 
 
 def default_cache_dir() -> Path:

@@ -328,8 +328,9 @@ def _enable_cache(args: argparse.Namespace) -> None:
     is a note, not an error: the command then compiles as without a cache)."""
     if args.no_cache or args.command == "cache":
         return
-    from jaxloc.compilation_cache import enable_compilation_cache
+    from jaxloc.compilation_cache import enable_compilation_cache, quiet_xla_log
 
+    quiet_xla_log()
     try:
         enable_compilation_cache()
     except OSError as error:

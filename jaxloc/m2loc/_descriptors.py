@@ -27,6 +27,7 @@ import numpy as np
 from jax import Array
 from scipy.spatial import cKDTree
 
+from jaxloc.compilation_cache import cached_call
 from jaxloc.m2loc._classes import GRAPH_CLASSES
 
 LengthFeature = Literal["length", "ratio", "both"]
@@ -296,7 +297,10 @@ def describe_map(
                     mask[slot, : lists[row].size] = True
                 centers = np.zeros((chunk, 3), np.float32)
                 centers[: rows.size] = centred[rows]
-                d, v = _describe_chunk(
+                d, v = cached_call(  # traced once per machine when the cache is on
+                    "describe_chunk",
+                    _describe_chunk,
+                    tuple,
                     centers,
                     centred[neighbours],
                     classes[neighbours],
