@@ -1,10 +1,11 @@
 """The Embree engine: Intel Embree through embreex (trimesh's own binding), CPU.
 
-Called from the traced program with ``jax.experimental.buffer_callback`` on a CPU backend (the host
-buffers in place, no copies) and :func:`jax.pure_callback` elsewhere (on a GPU backend the rays
-make a round trip to the host). The rays are split over a thread pool as wide as the machine
-(``embreex``'s ``run`` releases the GIL). The Embree scene holds the map's real triangles only
-(not its all-zero padding), and only the valid rays are traced.
+Called from the traced program as the XLA:CPU custom call :data:`TARGET` on a CPU backend (XLA's
+buffers in place, no copies; a program that calls it goes to JAX's persistent compilation cache
+like any other, see :mod:`jaxloc.raycasting._host_target`) and with :func:`jax.pure_callback`
+elsewhere (on a GPU backend the rays make a round trip to the host). The rays are split over a
+thread pool as wide as the machine (``embreex``'s ``run`` releases the GIL). The Embree scene holds
+the map's real triangles only (not its all-zero padding), and only the valid rays are traced.
 """
 
 from __future__ import annotations
@@ -17,9 +18,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jax.experimental.buffer_callback import buffer_callback
 
 from jaxloc.raycasting._cache import StructureCache, fingerprint, real_triangles
+from jaxloc.raycasting._host_target import host_call, register_host_target
 
 #: Rays per Embree call of the thread pool (smaller batches do not amortise the call).
 EMBREE_BATCH = 4096
@@ -153,24 +154,61 @@ def _empty_like(out: tuple, num: int) -> tuple:
     return tuple(np.empty(num, a.dtype) for a in out)
 
 
-def _embree_fill(_context, out, *args) -> None:
-    """``buffer_callback`` form of :func:`_embree_host`: writes into the output buffer(s)."""
-    if isinstance(out, tuple):
-        _embree_host(*args, out=tuple(np.asarray(o) for o in out), values=True)
-    else:
-        _embree_host(*args, out=(np.asarray(out),))
-
-
 def _embree_values_host(*args):
     return _embree_host(*args, values=True)
 
 
+def _fill(inputs: list, outputs: list) -> None:
+    """The custom call's body: unbatched operands, ``outputs`` (faces,) or (faces, t, u, v)."""
+    _embree_host(*inputs, out=tuple(outputs), values=len(outputs) == 4)
+
+
+#: The XLA:CPU custom-call target of the engine (registered at import; see _host_target).
+TARGET = "jaxloc_embree_nearest"
+_HAS_TARGET = register_host_target(TARGET, _fill)
+
+
+def _results(num_rays: int, values: bool) -> tuple:
+    faces = (jax.ShapeDtypeStruct((num_rays,), jnp.int32),)
+    return faces + 3 * (jax.ShapeDtypeStruct((num_rays,), jnp.float32),) if values else faces
+
+
+@functools.cache
+def _custom_call(values: bool):
+    """The engine's custom call on unbatched operands; under vmap the batch is folded away: one
+    map's batch of rays is one call over all of them, a batch of maps one call per map."""
+
+    @jax.custom_batching.custom_vmap
+    def call(key, triangles, origins, directions, valid):
+        results = _results(origins.shape[0], values)
+        return host_call(TARGET, results, key, triangles, origins, directions, valid)
+
+    @call.def_vmap
+    def batched(axis_size, in_batched, *args):
+        def full(x, is_batched):
+            return x if is_batched else jnp.broadcast_to(x, (axis_size,) + x.shape)
+
+        if in_batched[0] or in_batched[1]:  # maps batched: one call per map
+            out = jax.lax.map(
+                lambda a: call(*a), [full(*p) for p in zip(args, in_batched, strict=True)]
+            )
+        else:
+            key, triangles, *rays = args
+            num_rays = args[2].shape[1 if in_batched[2] else 0]
+            flat = [
+                full(x, b).reshape((-1,) + x.shape[2 if b else 1 :])
+                for x, b in zip(rays, in_batched[2:], strict=True)
+            ]
+            out = tuple(r.reshape(axis_size, num_rays) for r in call(key, triangles, *flat))
+        return out, (True,) * len(out)
+
+    return call
+
+
 def _call(args: tuple, out, values: bool):
-    fill_in_place = jax.default_backend() == "cpu"
-    if fill_in_place:
-        # Host buffers in place: no copy of the rays in, none of the result out (3.24M rays:
-        # ~45 ms less than pure_callback, benchmarks/results/engines_cpu.md).
-        return buffer_callback(_embree_fill, out, vmap_method="expand_dims")(*args)
+    if jax.default_backend() == "cpu" and _HAS_TARGET:
+        found = _custom_call(values)(*args)
+        return found if values else found[0]
     host = _embree_values_host if values else _embree_host
     return jax.pure_callback(host, out, *args, vmap_method="expand_dims")
 

@@ -12,10 +12,10 @@ recompute is skipped; the ``"jax"`` engine keeps the recompute on both paths.
   optional
   dependency, the reference.
 * ``"embree"``: Intel Embree through embreex (trimesh's own binding), called from the traced
-  program with ``jax.experimental.buffer_callback`` on a CPU backend (the host buffers in place,
-  no copies) and :func:`jax.pure_callback` elsewhere; the rays are split over a thread pool as
-  wide as the machine (``embreex``'s ``run`` releases the GIL). Host memory: on a GPU backend the
-  rays make a round trip to the host.
+  program as a named XLA:CPU custom call on a CPU backend (XLA's buffers in place, no copies; the
+  program can be kept in JAX's persistent compilation cache) and with :func:`jax.pure_callback`
+  elsewhere; the rays are split over a thread pool as wide as the machine (``embreex``'s ``run``
+  releases the GIL). Host memory: on a GPU backend the rays make a round trip to the host.
 * ``"warp"``: NVIDIA Warp's ``mesh_query_ray`` through ``warp.jax_callable`` (zero copy, CPU and
   CUDA). Warp's CPU backend runs one thread; its point is the GPU.
 * ``"auto"``: Embree on a CPU backend and Warp on a GPU backend where installed, else ``"jax"``.
