@@ -153,6 +153,21 @@ def test_kidnapped_robot_is_detected_and_recovered_and_scan_equals_the_loop(worl
     )
 
 
+def test_without_confirmation_a_lone_global_pose_is_reported_at_once(world_and_map):
+    """``TrackConfig(confirm=False)``: the first scan's verified global pose is reported as it is
+    found (RELOCALIZED, valid, where the default waits one scan), and tracking follows."""
+    world, triplet_map = world_and_map
+    scans = _drive(world, 21, 3)
+    _, results = _run_loop(
+        Tracker(triplet_map, TrackConfig(confirm=False)), scans, _odometry(scans)
+    )
+    assert [int(r.mode) for r in results] == [RELOCALIZED, TRACKED, TRACKED]
+    for scan, result in zip(scans, results, strict=True):
+        assert result.valid
+        rte, rre = localization_errors(result.T_map_scan.astype(np.float64), scan.T_map_scan)
+        assert rte < 1.0 and rre < 2.0
+
+
 def test_bad_odometry_and_empty_scans_are_values_not_nans(world_and_map):
     world, triplet_map = world_and_map
     scans = _drive(world, 21, 3)
