@@ -15,9 +15,9 @@ as :mod:`jaxloc.raycasting.embree` does). Every call has one more result, a one-
 (0 done, 1 failed): the callback cannot fail the XLA call (the status API is not exported), so an
 exception is logged (``jaxloc`` logger, with its traceback) and the status turns the results into
 :data:`FAILED_INT` / NaN in the program, never garbage. The callback writes each result through an
-operand aliased to it (``input_output_aliases``), never through ``out``: in a program loaded from
-the cache, jaxlib 0.10.1 passed ``out`` in the wrong form (a result buffer where a tuple of them was
-due, and the reverse), which crashed the process.
+operand aliased to it (``input_output_aliases``), never through ``out``: in programs loaded from
+the cache, jaxlib 0.10.1 handed a call inside a loop a result buffer where the array of result
+pointers was due, and a one-result call crashed the process.
 """
 
 from __future__ import annotations

@@ -194,7 +194,7 @@ def _custom_call(values: bool):
             )
         else:
             key, triangles, *rays = args
-            num_rays = args[2].shape[1 if in_batched[2] else 0]
+            num_rays = rays[0].shape[1 if in_batched[2] else 0]  # origins (R, 3) or (B, R, 3)
             flat = [
                 full(x, b).reshape((-1,) + x.shape[2 if b else 1 :])
                 for x, b in zip(rays, in_batched[2:], strict=True)
