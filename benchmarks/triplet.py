@@ -47,6 +47,7 @@ CONFIGS = {
     "tripletloc": tripletloc_config,
     "m2loc3": lambda: m2loc_config(3, robust=False),
     "m2loc3-robust": lambda: m2loc_config(3, robust=True),
+    "m2loc3-robust-unchecked": lambda: m2loc_config(3, robust=True, ambiguity_margin=None),
     "m2loc3-robust-k50": lambda: m2loc_config(3, robust=True, top_k=50),
     "m2loc3-retry3": lambda: m2loc_config(3, registration_attempts=3, hypotheses=0),
 }

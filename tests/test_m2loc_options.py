@@ -217,3 +217,34 @@ def test_min_verified_rejects_a_pose_that_few_vertices_confirm(world):
     assert m2loc_config(3).min_verified == 4 and m2loc_config(3, robust=False).min_verified == 4
     with pytest.raises(ValueError, match="min_verified"):
         m2loc_config(3, min_verified=-1)
+
+
+def test_a_place_that_repeats_elsewhere_is_refused_as_ambiguous(world):
+    """The uniqueness check (``ambiguity_margin``): a query that localizes in the world is kept,
+    right and not ambiguous; in the world with a copy of that neighbourhood 500 m away (a road
+    that repeats) the copy's pose verifies as well as the right one, and the pose is refused as
+    ambiguous instead of reported."""
+    rng = np.random.default_rng(11)
+    checked = config(hypotheses=64, ambiguity_margin=0.0)
+    unique = build_map(world.points, world.labels, checked)
+    for _ in range(10):  # the first query of seed 11 that localizes
+        query = make_query(world.points, world.labels, world.road_normals, rng, max_kept=20)
+        kept = localize_scan(unique, None, query.points, query.labels)
+        if kept.valid and localization_errors(kept.pose, query.T_map_scan)[0] < 7.5:
+            break
+    assert kept.valid and not kept.ambiguous
+    centre = query.T_map_scan[:3, 3]
+    near = np.linalg.norm(world.points[:, :2] - centre[:2], axis=1) < 90.0
+    offset = np.array([world.points[:, 0].max() - centre[0] + 500.0, 0.0, 0.0])
+    repeated_points = np.concatenate([world.points, world.points[near] + offset])
+    repeated_labels = np.concatenate([world.labels, world.labels[near]])
+    repeated = build_map(repeated_points, repeated_labels, checked)
+    refused = localize_scan(repeated, None, query.points, query.labels)
+    assert refused.ambiguous and not refused.valid
+    np.testing.assert_array_equal(refused.pose, np.eye(4))
+    with pytest.raises(ValueError, match="ambiguity_margin"):
+        config(hypotheses=0, ambiguity_margin=0.0)
+    # on in the robust default; off where there are no hypotheses, and in the paper's M2Loc
+    assert m2loc_config(3).ambiguity_margin == 0.0
+    assert m2loc_config(3, hypotheses=0).ambiguity_margin is None
+    assert m2loc_config(3, robust=False).ambiguity_margin is None

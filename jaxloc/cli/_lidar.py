@@ -353,6 +353,7 @@ def _scan_record(ref: ScanRef, scan: ScanInstances, result, compile_s: float) ->
         "instances": int(len(scan.points)),
         "instances_per_class": {str(c): n for c, n in counts.items()},
         "valid": bool(result.valid),
+        "ambiguous": bool(result.ambiguous),
         "clique_size": int(result.clique_size),
         "scales_used": int(result.scales_used),
         "T_map_scan": np.round(result.pose, 6).tolist(),
@@ -376,7 +377,8 @@ def _format_record(record: dict) -> str:
         how = f"{record['track']}, {record['clique_size']} local associations"
     lines = [
         f"{record['scan']}: {record['instances']} instances ({classes or 'none'}); "
-        f"{'valid' if record['valid'] else 'NOT valid'}, {how}",
+        f"{'valid' if record['valid'] else 'NOT valid'}"
+        f"{' (ambiguous: another place fits as well)' if record['ambiguous'] else ''}, {how}",
         "  T_map_scan =",
     ]
     lines += ["    " + " ".join(f"{v:12.4f}" for v in row) for row in record["T_map_scan"]]

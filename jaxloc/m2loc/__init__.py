@@ -59,6 +59,7 @@ from jaxloc.m2loc._hypotheses import (
     closed_form_poses,
     grid_verified_fraction,
     map_grid,
+    verified_hypotheses,
 )
 from jaxloc.m2loc._localization import (
     LocalizationResult,
@@ -150,6 +151,7 @@ __all__ = [
     "unpack_ranked",
     "up_axis_prior",
     "verified_fraction",
+    "verified_hypotheses",
     "vertex_descriptor",
     "voxel_downsample",
     "weighted_kabsch",

@@ -105,6 +105,7 @@ def localize_scans(
                 inlier_fraction=float(out.inlier_fraction[b]),
                 descriptor_time_ms=1e3 * (middle - start) / len(checked),
                 match_time_ms=1e3 * (end - middle) / len(checked),
+                ambiguous=bool(out.ambiguous[b]),
             )
         )
     return results

@@ -51,6 +51,13 @@ class TripletConfig(eqx.Module):
             0.55, above ``min_inlier_fraction``: on development seeds, 6 of the 8 searched poses
             of foreign scans that reached 0.5 stayed below 0.55, against 3 of 70 right poses of
             DCC04 queries; ``experiments/results/m2loc/searched_poses.md``).
+        ambiguity_margin: None (default) or the uniqueness check: the ``hypotheses`` of the
+            final graph are verified (:func:`jaxloc.m2loc.verified_hypotheses`, every query),
+            and the pose is refused as ambiguous when one that moves the scan elsewhere (its
+            vertices by more than ``ambiguity_distance`` on average) verifies at least the
+            pose's own fraction minus this margin: a repetitive road explained equally well
+            150 m further on is not a fix. Needs ``hypotheses`` > 0.
+        ambiguity_distance: metres; see ``ambiguity_margin``.
         loss: robust loss of the pose refinement (GNC-TLS, 1 m, by default).
         use_rsn: use the road-surface-normal prior when the map has RSN cells.
         rot_delta_deg: added to an RSN cell's normal std (degrees) for the prior's sigma.
@@ -72,6 +79,8 @@ class TripletConfig(eqx.Module):
     hypotheses: int = eqx.field(static=True, default=0)
     hypothesis_min_support: int = eqx.field(static=True, default=6)
     hypothesis_min_fraction: float = eqx.field(static=True, default=0.55)
+    ambiguity_margin: float | None = eqx.field(static=True, default=None)
+    ambiguity_distance: float = eqx.field(static=True, default=5.0)
     min_clique: int = eqx.field(static=True, default=10)
     min_inliers: int = eqx.field(static=True, default=3)
     min_inlier_fraction: float = eqx.field(static=True, default=0.5)
@@ -102,6 +111,12 @@ class TripletConfig(eqx.Module):
             raise ValueError("min_inlier_fraction must be in [0, 1] and verify_radius > 0")
         if not 0.0 <= self.hypothesis_min_fraction <= 1.0:
             raise ValueError("hypothesis_min_fraction must be in [0, 1]")
+        if self.ambiguity_margin is not None and not (
+            self.hypotheses > 0 and self.ambiguity_margin >= 0 and self.ambiguity_distance > 0
+        ):
+            raise ValueError(
+                "ambiguity_margin needs hypotheses > 0, a margin >= 0 and ambiguity_distance > 0"
+            )
         check_clique_sizes(self.clique_compact_size, self.clique_greedy_tiers)
 
 
@@ -122,14 +137,19 @@ def m2loc_config(
     check on the evidence beyond the pose's minimal set (``verify_beyond_minimal_set=True``).
 
     ``robust`` (default True) adds what helps small, noisy scans most in our measurements
-    (``experiments/results/m2loc/losses*.md``, ``hypotheses.md``, ``table1.md``): one-to-one
-    cliques and, when the maximum clique's pose verifies poorly, 256 verified clique hypotheses
-    (``one_to_one=True, hypotheses=256``); ``robust=False`` is the paper's M2Loc. ``overrides``
-    win over both (``registration_attempts=3, hypotheses=0`` is session 7's robust setting)."""
+    (``experiments/results/m2loc/losses*.md``, ``hypotheses.md``, ``table1.md``,
+    ``ambiguity.md``): one-to-one cliques, 256 verified clique hypotheses searched when the
+    maximum clique's pose verifies poorly, and the uniqueness check on them (``one_to_one=True,
+    hypotheses=256, ambiguity_margin=0.0``: a pose is refused when a pose elsewhere verifies at
+    least as well); ``robust=False`` is the paper's M2Loc. ``overrides`` win over both
+    (``registration_attempts=3, hypotheses=0`` is session 7's robust setting; the uniqueness check
+    needs hypotheses, so ``hypotheses=0`` turns it off unless ``ambiguity_margin`` is given)."""
     descriptor = DescriptorConfig(
         scale_edges=tuple(scale_edges[:num_scales]), length_feature=length_feature
     )
     defaults = {"verify_beyond_minimal_set": True, "min_verified": 4}
     if robust:
         defaults.update(one_to_one=True, hypotheses=256)
+        if overrides.get("hypotheses", 256) > 0:
+            defaults["ambiguity_margin"] = 0.0
     return TripletConfig(descriptor=descriptor, **{**defaults, **overrides})

@@ -141,7 +141,7 @@ def closed_form_poses(masks: Array, query_xyz: Array, map_xyz: Array) -> Array:
     return jnp.where(usable[:, None, None], poses, jnp.eye(4, dtype=query_xyz.dtype))
 
 
-def best_verified_clique(
+def verified_hypotheses(
     adjacency: Array,
     valid: Array,
     query_xyz: Array,
@@ -149,8 +149,8 @@ def best_verified_clique(
     verify: Callable[[Array], Array],
     count: int,
 ) -> tuple[Array, Array, Array]:
-    """Among the greedy cliques grown from every association, the ``count`` largest distinct ones
-    (at least 3 associations) get a closed-form pose each; the one whose pose verifies best wins.
+    """The ``count`` largest distinct greedy cliques grown from every association (at least 3
+    associations), a closed-form pose each, and each pose's verification.
 
     Args:
         adjacency: (A, A) bool consistency graph (symmetric, masked by ``valid``).
@@ -160,9 +160,8 @@ def best_verified_clique(
         count: static number of hypotheses verified.
 
     Returns:
-        ``(clique (A,) bool, T_map_scan (4, 4), fraction)``: the best-verified clique, its
-        closed-form pose and that pose's verification (all False, the identity and -1 when no
-        clique of 3 or more exists).
+        ``(cliques (H, A) bool, T_map_scan (H, 4, 4), fractions (H,))`` with H = min(count, A);
+        a slot without a clique of 3 or more has fraction -1.
     """
     n = adjacency.shape[0]
     cliques, order = greedy_cliques(adjacency, valid)
@@ -177,9 +176,34 @@ def best_verified_clique(
     score = jnp.where(repeated | (sizes < 3), -1, sizes).astype(jnp.float32)
     top_score, chosen = jax.lax.top_k(score, min(count, score.shape[0]))
     masks = jax.vmap(lambda clique: unpack_ranked(clique, order, n))(cliques[chosen])
-
     poses = closed_form_poses(masks, query_xyz, map_xyz)
     fractions = jnp.where(top_score >= 3, jax.vmap(verify)(poses), -1.0)
+    return masks, poses, fractions
+
+
+def best_verified_clique(
+    adjacency: Array,
+    valid: Array,
+    query_xyz: Array,
+    map_xyz: Array,
+    verify: Callable[[Array], Array],
+    count: int,
+) -> tuple[Array, Array, Array]:
+    """Among :func:`verified_hypotheses` (same arguments), the clique whose pose verifies best.
+
+    Returns:
+        ``(clique (A,) bool, T_map_scan (4, 4), fraction)``: the best-verified clique, its
+        closed-form pose and that pose's verification (all False, the identity and -1 when no
+        clique of 3 or more exists).
+    """
+    return best_hypothesis(
+        *verified_hypotheses(adjacency, valid, query_xyz, map_xyz, verify, count)
+    )
+
+
+def best_hypothesis(masks: Array, poses: Array, fractions: Array) -> tuple[Array, Array, Array]:
+    """The best-verified of :func:`verified_hypotheses`' outputs, as :func:`best_verified_clique`
+    returns it."""
     best = jnp.argmax(fractions)
     found = fractions[best] >= 0
     pose = jnp.where(found, poses[best], jnp.eye(4, dtype=poses.dtype))

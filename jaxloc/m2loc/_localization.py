@@ -29,6 +29,8 @@ class LocalizationResult(NamedTuple):
         inlier_fraction: fraction of scan vertices within ``verify_radius`` of a same-class map
             vertex under the estimated pose (the place-not-in-the-map check).
         descriptor_time_ms: query descriptor time; match_time_ms: match + clique + pose time.
+        ambiguous: the pose was refused because another place explains the scan about as well
+            (``TripletConfig.ambiguity_margin``); False when the check is off.
     """
 
     pose: np.ndarray
@@ -41,6 +43,7 @@ class LocalizationResult(NamedTuple):
     inlier_fraction: float
     descriptor_time_ms: float
     match_time_ms: float
+    ambiguous: bool = False
 
 
 def query_capacity(n: int, config: TripletConfig) -> int:
@@ -186,4 +189,5 @@ def localize_scan(
         inlier_fraction=float(out.inlier_fraction),
         descriptor_time_ms=1e3 * (middle - start),
         match_time_ms=1e3 * (end - middle),
+        ambiguous=bool(out.ambiguous),
     )

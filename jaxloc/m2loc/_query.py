@@ -34,7 +34,12 @@ from jax import Array
 
 from jaxloc.m2loc._clique import max_clique_symmetric
 from jaxloc.m2loc._descriptors import DescriptorConfig, describe_points
-from jaxloc.m2loc._hypotheses import best_verified_clique, grid_verified_fraction, map_grid
+from jaxloc.m2loc._hypotheses import (
+    best_hypothesis,
+    grid_verified_fraction,
+    map_grid,
+    verified_hypotheses,
+)
 from jaxloc.m2loc._map import TripletMap
 from jaxloc.m2loc._matching import consistency_graph, match_descriptors
 from jaxloc.m2loc._registration import register
@@ -57,7 +62,11 @@ def describe_query(
 
 
 class QueryOutput(eqx.Module):
-    """Padded output of :func:`register_query` (A = S * Nq * k associations)."""
+    """Padded output of :func:`register_query` (A = S * Nq * k associations).
+
+    ``ambiguous``: the pose was refused by the uniqueness check (``ambiguity_margin``);
+    ``rival_fraction``: the best verification of a hypothesis that puts the scan elsewhere (-1
+    when the check is off or no such hypothesis exists)."""
 
     T_map_scan: Array
     valid: Array
@@ -68,6 +77,8 @@ class QueryOutput(eqx.Module):
     scales_used: Array
     clique_exact: Array
     inlier_fraction: Array
+    ambiguous: Array
+    rival_fraction: Array
 
 
 def verified_fraction(
@@ -288,26 +299,40 @@ def register_query(
         start = (jnp.int32(0), assoc_valid, jnp.int32(0), empty)
         *_, best = jax.lax.while_loop(again, retry, start)
         clique, exact, scale, solved, matrix, fraction = best
+
+    def final_graph(scale):
+        """The consistency graph of the associations up to ``scale`` (the hypotheses' graph)."""
+        usable = assoc_valid & (assoc_scale <= scale)
+        ends = (assoc_query, assoc_map) if config.one_to_one else (None, None)
+        adjacency = consistency_graph(
+            query_xyz, map_xyz, usable, config.consistency_threshold, *ends
+        )
+        return adjacency, usable
+
+    def hypotheses_of(scale):
+        """The verified clique hypotheses of the graph up to ``scale`` (through the map's grid)."""
+        grid = triplet_map.grid
+        if grid is None or grid.cell < config.verify_radius:
+            grid = map_grid(triplet_map.points, triplet_map.classes, config.verify_radius)
+
+        def verify_fast(matrix):
+            return grid_verified_fraction(
+                matrix, points, classes, mask, grid, config.verify_radius, discount
+            )
+
+        return verified_hypotheses(
+            *final_graph(scale), query_xyz, map_xyz, verify_fast, config.hypotheses
+        )
+
+    # The uniqueness check verifies the hypotheses of every query; the search below reuses them
+    # (its graph is the same: the search keeps the scale).
+    checked = hypotheses_of(scale) if config.ambiguity_margin is not None else None
     if config.hypotheses:
         # The best pose still verifies poorly: rank the greedy cliques of its final graph by the
         # verification of their closed-form poses and refine the best one.
         def search(best):
-            usable = assoc_valid & (assoc_scale <= best[2])
-            ends = (assoc_query, assoc_map) if config.one_to_one else (None, None)
-            adjacency = consistency_graph(
-                query_xyz, map_xyz, usable, config.consistency_threshold, *ends
-            )
-            grid = triplet_map.grid
-            if grid is None or grid.cell < config.verify_radius:
-                grid = map_grid(triplet_map.points, triplet_map.classes, config.verify_radius)
-
-            def verify_fast(matrix):
-                return grid_verified_fraction(
-                    matrix, points, classes, mask, grid, config.verify_radius, discount
-                )
-
-            found, closed_form, _ = best_verified_clique(
-                adjacency, usable, query_xyz, map_xyz, verify_fast, config.hypotheses
+            found, closed_form, _ = best_hypothesis(
+                *(checked if checked is not None else hypotheses_of(best[2]))
             )
             solved, refined, fraction = pose_of(found)
             # The robust refinement of a small clique (3-6 associations) can fit it at the cost
@@ -337,12 +362,31 @@ def register_query(
         clique, exact, scale, solved, matrix, fraction = jax.lax.cond(
             poor, search, lambda best: best, best
         )
+    ambiguous, rival = jnp.array(False), jnp.float32(-1.0)
+    if checked is not None:
+        # Uniqueness: does a pose that puts the scan elsewhere explain it (almost) as well?
+        _, poses, fractions = checked
+
+        def moved(T):
+            return points @ T[:3, :3].T + T[:3, 3]
+
+        real = mask.astype(jnp.float32)
+        here = moved(matrix)
+        shift = jax.vmap(
+            lambda T: (
+                jnp.sum(jnp.linalg.norm(moved(T) - here, axis=-1) * real)
+                / jnp.maximum(jnp.sum(real), 1.0)
+            )
+        )(poses)
+        rival = jnp.max(jnp.where(shift > config.ambiguity_distance, fractions, -1.0))
+        ambiguous = rival >= fraction - config.ambiguity_margin
     clique_size = jnp.sum(clique)
     valid = (
         solved
         & (clique_size >= config.min_inliers)
         & (fraction >= config.min_inlier_fraction)
         & (verified_count(fraction) >= config.min_verified - 0.5)  # counts, in float32
+        & ~ambiguous
     )
     matrix = matrix.at[:3, 3].add(triplet_map.origin)
     matrix = jnp.where(valid, matrix, jnp.eye(4, dtype=matrix.dtype))
@@ -356,4 +400,6 @@ def register_query(
         scales_used=scale + 1,
         clique_exact=exact,
         inlier_fraction=fraction,
+        ambiguous=ambiguous,
+        rival_fraction=rival,
     )

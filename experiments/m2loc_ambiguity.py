@@ -1,0 +1,155 @@
+"""Choosing the uniqueness check's margin (``TripletConfig.ambiguity_margin``) on dev drives.
+
+The drives of ``m2loc_drives.py`` (same generator, seeds and odometry noise), judged on each
+drive's last scan: the single scan and the fused window of the last 3 scans, on every map, with
+the robust default without the check and with it; the margins are compared on the same queries
+from one run with margin 0 (a pose refused at margin 0 is refused at any larger margin, and a
+larger margin refuses where ``rival >= fraction - margin``). Per row: successes (valid, RTE < 7.5
+m, RRE < 10 deg), wrong valid poses, and false accepts (the next map's drives with a valid pose).
+
+    JAX_PLATFORMS=cpu python experiments/m2loc_ambiguity.py --seeds 2000 3000 4000
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import m2loc_drives as drives
+import numpy as np
+from _atomic import write_text_atomic
+
+from jaxloc.m2loc import (
+    build_map,
+    describe_query,
+    localization_errors,
+    m2loc_config,
+    pad_scan,
+    register_query,
+)
+
+MARGINS = (0.0, 0.05, 0.1, 0.15, 0.2)
+
+
+def outcomes(triplet_map, queries, capacity) -> list[dict | None]:
+    """valid, pose, own and rival verification of each query (None: fewer than 3 instances)."""
+    config = triplet_map.config
+    found = []
+    for points, labels in queries:
+        if len(points) < 3:
+            found.append(None)
+            continue
+        scan = pad_scan(points, labels, config, capacity)
+        d, v = describe_query(scan.points, scan.classes, scan.mask, config.descriptor)
+        out = register_query(triplet_map, scan.points, scan.classes, d, v, scan.mask)
+        found.append(
+            {
+                "valid": bool(out.valid),
+                "pose": np.asarray(out.T_map_scan, np.float64),
+                "fraction": float(out.inlier_fraction),
+                "rival": float(out.rival_fraction),
+            }
+        )
+    return found
+
+
+def count(own, foreign, truths, keep) -> tuple[int, int, int]:
+    """(successes, wrong valid poses, false accepts) of the queries ``keep`` accepts."""
+    ok = wrong = 0
+    for out, truth in zip(own, truths, strict=True):
+        if out is None or not keep(out):
+            continue
+        rte, rre = localization_errors(out["pose"], truth)
+        good = rte < drives.SUCCESS_RTE_M and rre < drives.SUCCESS_RRE_DEG
+        ok, wrong = ok + good, wrong + (not good)
+    return ok, wrong, sum(out is not None and keep(out) for out in foreign)
+
+
+def rows_of(seed: int, name: str, all_maps: list, num_drives: int) -> list[tuple]:
+    names = [m[0] for m in all_maps]
+    other = names[(names.index(name) + 1) % len(names)]
+    drive_sets, chains = {}, {}
+    for map_name, points, labels, normals in all_maps:
+        if map_name in (name, other):  # each map's drives from a generator of their own
+            rng = np.random.default_rng(seed)
+            drive_sets[map_name] = [
+                drives.make_drive(points, labels, normals, rng, 10, max_kept=11)
+                for _ in range(num_drives)
+            ]
+            rng = np.random.default_rng(seed + 1)
+            chains[map_name] = [
+                drives.odometry_chain(d, rng, 0.05, 0.5) for d in drive_sets[map_name]
+            ]
+    _, points, labels, normals = next(m for m in all_maps if m[0] == name)
+    truths = [d[-1].T_map_scan for d in drive_sets[name]]
+    rows = []
+    for k in (1, 3):
+
+        def queries_of(which, k=k):
+            pairs = zip(drive_sets[which], chains[which], strict=True)
+            return [drives.fused_query(d, c, len(d) - 1, k) for d, c in pairs]
+
+        own, foreign = queries_of(name), queries_of(other)
+        capacity = drives.band(max(len(q[0]) for q in own + foreign))
+        results = {}
+        for margin in (None, 0.0):
+            config = m2loc_config(3, query_capacity=capacity, ambiguity_margin=margin)
+            triplet_map = build_map(points, labels, config, normals)
+            results[margin] = (
+                outcomes(triplet_map, own, capacity),
+                outcomes(triplet_map, foreign, capacity),
+            )
+        row = [count(*results[None], truths, lambda o: o["valid"])]
+        for margin in MARGINS:
+            row.append(
+                count(
+                    *results[0.0],
+                    truths,
+                    lambda o, m=margin: o["valid"] and not o["rival"] >= o["fraction"] - m,
+                )
+            )
+        rows.append((name, seed, k, row))
+        print(rows[-1], file=sys.stderr, flush=True)
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[2000, 3000, 4000])
+    parser.add_argument("--drives", type=int, default=20)
+    parser.add_argument("--maps", nargs="+", help="only these maps (default: all)")
+    parser.add_argument("--out", type=Path, default=drives.OUT / "ambiguity.md")
+    args = parser.parse_args()
+    all_maps = list(drives.maps())
+    rows = []
+    for seed in args.seeds:
+        for name, *_ in all_maps:
+            if args.maps is None or name in args.maps:
+                rows.extend(rows_of(seed, name, all_maps, args.drives))
+    head = " | ".join(["without the check"] + [f"margin {m}" for m in MARGINS])
+    lines = [
+        "# The uniqueness check's margin on development drives",
+        "",
+        f"Command: `JAX_PLATFORMS=cpu python experiments/m2loc_ambiguity.py --seeds "
+        f"{' '.join(map(str, args.seeds))} --drives {args.drives}`",
+        "",
+        f"{args.drives} drives per map and seed; each cell: successes / wrong valid poses / false "
+        "accepts (foreign drives), judged on the last scan (k = 1) or the fused window of the last "
+        "3 scans (k = 3).",
+        "",
+        f"| map | seed | k | {head} |",
+        "|---|---|---|" + "---|" * (1 + len(MARGINS)),
+    ]
+    for name, seed, k, cells in rows:
+        text = " | ".join(f"{ok} / {wrong} / {false}" for ok, wrong, false in cells)
+        lines.append(f"| {name} | {seed} | {k} | {text} |")
+    totals = np.sum([cells for *_, cells in rows], axis=0)
+    text = " | ".join(f"{ok} / {wrong} / {false}" for ok, wrong, false in totals)
+    lines.append(f"| all | | | {text} |")
+    write_text_atomic(args.out, "\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
