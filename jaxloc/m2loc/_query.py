@@ -64,7 +64,8 @@ def describe_query(
 class QueryOutput(eqx.Module):
     """Padded output of :func:`register_query` (A = S * Nq * k associations).
 
-    ``ambiguous``: the pose was refused by the uniqueness check (``ambiguity_margin``);
+    ``ambiguous``: a pose valid by every other test was refused by the uniqueness check
+    (``ambiguity_margin``);
     ``rival_fraction``: the best verification of a hypothesis that puts the scan elsewhere (-1
     when the check is off or no such hypothesis exists)."""
 
@@ -379,15 +380,16 @@ def register_query(
             )
         )(poses)
         rival = jnp.max(jnp.where(shift > config.ambiguity_distance, fractions, -1.0))
-        ambiguous = rival >= fraction - config.ambiguity_margin
     clique_size = jnp.sum(clique)
     valid = (
         solved
         & (clique_size >= config.min_inliers)
         & (fraction >= config.min_inlier_fraction)
         & (verified_count(fraction) >= config.min_verified - 0.5)  # counts, in float32
-        & ~ambiguous
     )
+    if checked is not None:  # ambiguous: a pose valid by every other test, refused for its rival
+        ambiguous = valid & (rival >= fraction - config.ambiguity_margin)
+        valid = valid & ~ambiguous
     matrix = matrix.at[:3, 3].add(triplet_map.origin)
     matrix = jnp.where(valid, matrix, jnp.eye(4, dtype=matrix.dtype))
     return QueryOutput(
