@@ -71,6 +71,9 @@ def world():
 
 
 def config(attempts: int = 1, hypotheses: int = 0, min_verified: int = 0, **overrides):
+    """The fixture's configuration; the uniqueness check off unless asked for (each test here
+    looks at one option at a time)."""
+    overrides.setdefault("ambiguity_margin", None)
     return m2loc_config(
         2,
         scale_edges=(20.0, 30.0),
