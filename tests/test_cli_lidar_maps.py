@@ -86,8 +86,9 @@ def test_built_map_localizes_its_own_sequence(built, sequence_dir, tmp_path, cap
     assert len(from_folder["scans"]) == 4  # scans 0, 5, 10, 15
     assert from_folder["summary"]["success_rate"] >= 0.75, from_folder["scans"]
     for a, b in zip(from_folder["scans"], from_saved["scans"], strict=True):
-        for key in ("T_map_scan", "valid", "clique_size", "rte_m", "rre_deg"):
+        for key in ("T_map_scan", "valid", "ambiguous", "clique_size", "rte_m", "rre_deg"):
             assert a[key] == b[key], key
+        assert not (a["valid"] and a["ambiguous"])  # an ambiguous pose is never reported valid
     assert from_saved["summary"]["map_build_s"] < 5.0  # loaded, not described again
     code, out, err = run(["localize-lidar", built_saved, *argv], capsys)
     assert code == 0, err
