@@ -67,20 +67,9 @@ def count(own, foreign, truths, keep) -> tuple[int, int, int]:
 
 
 def rows_of(seed: int, name: str, all_maps: list, num_drives: int) -> list[tuple]:
-    names = [m[0] for m in all_maps]
-    other = names[(names.index(name) + 1) % len(names)]
-    drive_sets, chains = {}, {}
-    for map_name, points, labels, normals in all_maps:
-        if map_name in (name, other):  # each map's drives from a generator of their own
-            rng = np.random.default_rng(seed)
-            drive_sets[map_name] = [
-                drives.make_drive(points, labels, normals, rng, 10, max_kept=11)
-                for _ in range(num_drives)
-            ]
-            rng = np.random.default_rng(seed + 1)
-            chains[map_name] = [
-                drives.odometry_chain(d, rng, 0.05, 0.5) for d in drive_sets[map_name]
-            ]
+    other, drive_sets, chains = drives.own_and_foreign_drives(
+        all_maps, name, seed, num_drives, 10, 11, (0.05, 0.5)
+    )
     _, points, labels, normals = next(m for m in all_maps if m[0] == name)
     truths = [d[-1].T_map_scan for d in drive_sets[name]]
     rows = []

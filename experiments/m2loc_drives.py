@@ -147,28 +147,37 @@ def run_tracker(tracker, queries_per_drive, capacity, chains) -> tuple[list, lis
     return runs, seconds
 
 
+def own_and_foreign_drives(all_maps, only, seed, count, length, max_kept, noise):
+    """The drives of map ``only`` and of its foreign map (the next one in ``all_maps``), with
+    their odometry chains: ``(foreign name, {name: drives}, {name: chains})``. Each map's drives
+    come from a generator of their own (``seed``), its chains from another (``seed + 1``)."""
+    names = [m[0] for m in all_maps]
+    other = names[(names.index(only) + 1) % len(names)]
+    drives, chains = {}, {}
+    for name, points, labels, normals in all_maps:
+        if name not in (only, other):
+            continue
+        rng = np.random.default_rng(seed)
+        drives[name] = [
+            make_drive(points, labels, normals, rng, length, max_kept=max_kept)
+            for _ in range(count)
+        ]
+        rng = np.random.default_rng(seed + 1)
+        chains[name] = [odometry_chain(d, rng, *noise) for d in drives[name]]
+    return other, drives, chains
+
+
 def rows_of_map(args, only: str) -> list:
     """The rows of one map (run in a process of its own: a process that compiles every map's
     programs ran out of memory mappings on this machine)."""
     all_maps = list(maps())
-    names = [m[0] for m in all_maps]
-    needed = {only, names[(names.index(only) + 1) % len(names)]}  # its own and foreign drives
-    drives, chains = {}, {}
-    for name, points, labels, normals in all_maps:
-        if name not in needed:  # each map's drives come from a generator of their own
-            continue
-        rng = np.random.default_rng(args.seed)
-        drives[name] = [
-            make_drive(points, labels, normals, rng, args.length, max_kept=args.max_kept)
-            for _ in range(args.drives)
-        ]
-        rng = np.random.default_rng(args.seed + 1)
-        chains[name] = [odometry_chain(d, rng, *args.odometry_noise) for d in drives[name]]
+    other, drives, chains = own_and_foreign_drives(
+        all_maps, only, args.seed, args.drives, args.length, args.max_kept, args.odometry_noise
+    )
     rows = []
-    for index, (name, points, labels, normals) in enumerate(all_maps):
+    for name, points, labels, normals in all_maps:
         if name != only:
             continue
-        other = all_maps[(index + 1) % len(all_maps)][0]
         own, foreign = drives[name], drives[other]
         truths = [d[-1].T_map_scan for d in own]
 
