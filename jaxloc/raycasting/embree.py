@@ -1,6 +1,6 @@
 """The Embree engine: Intel Embree through embreex (trimesh's own binding), CPU.
 
-Called from the traced program as the XLA:CPU custom call :data:`TARGET` on a CPU backend (XLA's
+Called from the traced program as the XLA:CPU FFI target :data:`TARGET` on a CPU backend (XLA's
 buffers in place, no copies; a program that calls it goes to JAX's persistent compilation cache
 like any other, see :mod:`jaxloc.raycasting._host_target`) and with :func:`jax.pure_callback`
 elsewhere (on a GPU backend the rays make a round trip to the host). The rays are split over a
@@ -109,9 +109,10 @@ def _embree_host(key, triangles, origins, directions, valid, out=None, values=Fa
     key, triangles, origins, directions, valid = map(
         np.asarray, (key, triangles, origins, directions, valid)
     )
+    key_lead, triangles_lead = key.shape[:-1], triangles.shape[:-3]
     lead = np.broadcast_shapes(
-        key.shape[:-1],
-        triangles.shape[:-3],
+        key_lead,
+        triangles_lead,
         origins.shape[:-2],
         directions.shape[:-2],
         valid.shape[:-1],
@@ -126,9 +127,12 @@ def _embree_host(key, triangles, origins, directions, valid, out=None, values=Fa
     origins = np.ascontiguousarray(flat(origins, (num_rays, 3)), np.float32).reshape(-1, 3)
     directions = np.ascontiguousarray(flat(directions, (num_rays, 3)), np.float32).reshape(-1, 3)
     valid = flat(valid, (num_rays,)).reshape(-1)
-    groups: dict[bytes, list[int]] = {}
-    for i in range(size):
-        groups.setdefault(key[i].tobytes(), []).append(i)
+    groups: dict[bytes, list[int]] = {}  # map fingerprint -> the batch rows that cast on it
+    if int(np.prod(np.broadcast_shapes(key_lead, triangles_lead))) == 1:  # one map for all rays
+        groups[key[0].tobytes()] = list(range(size))
+    else:
+        for i in range(size):
+            groups.setdefault(key[i].tobytes(), []).append(i)
     if out is None:
         dtypes = (np.int32, np.float32, np.float32, np.float32) if values else (np.int32,)
         out = tuple(np.empty(lead + (num_rays,), dtype) for dtype in dtypes)
@@ -159,55 +163,19 @@ def _embree_values_host(*args):
 
 
 def _fill(inputs: list, outputs: list) -> None:
-    """The custom call's body: unbatched operands, ``outputs`` (faces,) or (faces, t, u, v)."""
+    """The FFI target's body: operands and ``outputs`` (faces,) or (faces, t, u, v) with the batch
+    axes of a vmapped call in front (``expand_dims``, as :func:`_embree_host` expects)."""
     _embree_host(*inputs, out=tuple(outputs), values=len(outputs) == 4)
 
 
-#: The XLA:CPU custom-call target of the engine (registered at import; see _host_target).
+#: The XLA:CPU FFI target of the engine (registered at import; see _host_target).
 TARGET = "jaxloc_embree_nearest"
 _HAS_TARGET = register_host_target(TARGET, _fill)
 
 
-def _results(num_rays: int, values: bool) -> tuple:
-    faces = (jax.ShapeDtypeStruct((num_rays,), jnp.int32),)
-    return faces + 3 * (jax.ShapeDtypeStruct((num_rays,), jnp.float32),) if values else faces
-
-
-@functools.cache
-def _custom_call(values: bool):
-    """The engine's custom call on unbatched operands; under vmap the batch is folded away: one
-    map's batch of rays is one call over all of them, a batch of maps one call per map."""
-
-    @jax.custom_batching.custom_vmap
-    def call(key, triangles, origins, directions, valid):
-        results = _results(origins.shape[0], values)
-        return host_call(TARGET, results, key, triangles, origins, directions, valid)
-
-    @call.def_vmap
-    def batched(axis_size, in_batched, *args):
-        def full(x, is_batched):
-            return x if is_batched else jnp.broadcast_to(x, (axis_size,) + x.shape)
-
-        if in_batched[0] or in_batched[1]:  # maps batched: one call per map
-            out = jax.lax.map(
-                lambda a: call(*a), [full(*p) for p in zip(args, in_batched, strict=True)]
-            )
-        else:
-            key, triangles, *rays = args
-            num_rays = rays[0].shape[1 if in_batched[2] else 0]  # origins (R, 3) or (B, R, 3)
-            flat = [
-                full(x, b).reshape((-1,) + x.shape[2 if b else 1 :])
-                for x, b in zip(rays, in_batched[2:], strict=True)
-            ]
-            out = tuple(r.reshape(axis_size, num_rays) for r in call(key, triangles, *flat))
-        return out, (True,) * len(out)
-
-    return call
-
-
 def _call(args: tuple, out, values: bool):
     if jax.default_backend() == "cpu" and _HAS_TARGET:
-        found = _custom_call(values)(*args)
+        found = host_call(TARGET, out if values else (out,), *args)
         return found if values else found[0]
     host = _embree_values_host if values else _embree_host
     return jax.pure_callback(host, out, *args, vmap_method="expand_dims")
