@@ -8,8 +8,9 @@ at most ``--max-kept`` kept, 0.2-0.5 m jitter, 10-30 % spurious, 1 degree tilt n
 odometry is a chain of the true relative poses, each perturbed by ``--odometry-noise`` (metres
 and degrees rms per scan), so a window's relative poses and the tracker's predictions carry the
 same drift. Every row is judged on the drive's last scan: localized alone (M2Loc as published,
-TripletLoc, the robust default), through the fused window of its last K scans, or by the tracker
-that ran over the whole drive (on single scans, or on fused windows of 3).
+TripletLoc, the robust default), through the fused window of its last K scans (a pose on a clique
+below ``WINDOW_MIN_CLIQUE`` refused, as ``localize_window`` does), or by the tracker that ran over
+the whole drive (on single scans, or on fused windows of 3).
 
 Success: valid, RTE < 7.5 m, RRE < 10 deg; RTE / RRE: medians over the successes; "wrong": valid
 poses off by more (the tracker's over every scan of every drive); "false accepts": drives cut from
@@ -37,6 +38,7 @@ import numpy as np
 from jaxloc.io import load_instance_map, load_road_normals
 from jaxloc.m2loc import (
     TRACKED,
+    WINDOW_MIN_CLIQUE,
     TrackConfig,
     Tracker,
     build_map,
@@ -45,6 +47,7 @@ from jaxloc.m2loc import (
     localize_scan,
     m2loc_config,
     pad_scan,
+    require_clique,
     track_step,
     tripletloc_config,
 )
@@ -118,15 +121,23 @@ def stats_of(judged, drives: int) -> dict:
     }
 
 
-def run_one_shot(triplet_map, queries, truths, foreign_queries) -> tuple[dict, float]:
-    """Localize each (points, labels) query; returns stats and mean seconds per query."""
-    localize_scan(triplet_map, None, *max(queries, key=lambda q: len(q[0])))  # compile
+def run_one_shot(
+    triplet_map, queries, truths, foreign_queries, min_clique: int = 3
+) -> tuple[dict, float]:
+    """Localize each (points, labels) query, refusing poses on a clique below ``min_clique``
+    (``WINDOW_MIN_CLIQUE`` for windows, as ``localize_window`` and the command line); returns
+    stats and mean seconds per query."""
+
+    def localize(query):
+        return require_clique(localize_scan(triplet_map, None, *query), min_clique)
+
+    localize(max(queries, key=lambda q: len(q[0])))  # compile
     start = time.perf_counter()
-    results = [localize_scan(triplet_map, None, *q) for q in queries]
+    results = [localize(q) for q in queries]
     seconds = (time.perf_counter() - start) / len(queries)
     judged = [judge(r.pose, r.valid, t) for r, t in zip(results, truths, strict=True)]
     stats = stats_of(judged, len(queries))
-    stats["false"] = int(sum(localize_scan(triplet_map, None, *q).valid for q in foreign_queries))
+    stats["false"] = int(sum(localize(q).valid for q in foreign_queries))
     return stats, seconds
 
 
@@ -206,7 +217,7 @@ def rows_of_map(args, only: str) -> list:
                 config = m2loc_config(3, query_capacity=capacity[k])
                 robust[capacity[k]] = build_map(points, labels, config, normals)
             stats, seconds = run_one_shot(
-                robust[capacity[k]], queries[k], truths, foreign_queries[k]
+                robust[capacity[k]], queries[k], truths, foreign_queries[k], WINDOW_MIN_CLIQUE
             )
             size = float(np.median([len(q[0]) for q in queries[k]]))
             rows.append((name, f"M2Loc robust, --accumulate {k}", stats, seconds, size, None))

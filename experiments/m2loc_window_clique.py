@@ -14,6 +14,7 @@ a valid pose). A larger smallest clique only refuses poses, so one run judges ev
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -40,7 +41,7 @@ def outcomes(triplet_map, queries, truths) -> list[tuple[int, int, bool]]:
         right = False
         if truths is not None:
             rte, rre = localization_errors(result.pose, truths[i])
-            right = rte < drives.SUCCESS_RTE_M and rre < drives.SUCCESS_RRE_DEG
+            right = bool(rte < drives.SUCCESS_RTE_M and rre < drives.SUCCESS_RRE_DEG)
         found.append((len(points), result.clique_size, right))
     return found
 
@@ -85,6 +86,7 @@ def main() -> None:
     parser.add_argument("--drives", type=int, default=20)
     parser.add_argument("--maps", nargs="+", help="only these maps (default: all)")
     parser.add_argument("--out", type=Path, default=drives.OUT / "window_clique.md")
+    parser.add_argument("--raw", type=Path, help="JSON of every valid pose: (size, clique, right)")
     args = parser.parse_args()
     all_maps = list(drives.maps())
     rows = []
@@ -123,6 +125,8 @@ def main() -> None:
         text = " | ".join(f"{ok} / {wrong} / {false}" for ok, wrong, false in cells(own, foreign))
         lines.append(f"| {name} | {seed} | {k} | {text} |")
     write_text_atomic(args.out, "\n".join(lines) + "\n")
+    if args.raw is not None:
+        write_text_atomic(args.raw, json.dumps(rows))
     print("\n".join(lines))
 
 

@@ -18,7 +18,9 @@ import pytest
 from _helipr_fixtures import FIRST_STAMP, PERIOD_NS, ns_to_seconds, tum_line, write_helipr_sequence
 
 from jaxloc.cli import main
+from jaxloc.cli._lidar import _format_record
 from jaxloc.io import load_lidar_sequence
+from jaxloc.m2loc import WINDOW_MIN_CLIQUE
 from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
 from jaxloc.synthetic.outdoor import make_outdoor_world
 
@@ -357,6 +359,12 @@ def test_accumulate_fuses_the_last_scans_through_odometry(built, sequence_dir, t
     assert [s.get("fused_scans", 1) for s in scans] == [1, 2, 3, 3]
     for record in scans[1:]:
         assert record["instances"] < record["fused_instances"]
+        # a window's pose rests on more than the minimal set, or is refused and says so
+        assert not record["valid"] or record["clique_size"] >= WINDOW_MIN_CLIQUE
+        if record["small_clique"]:
+            assert not record["valid"] and record["clique_size"] < WINDOW_MIN_CLIQUE
+        assert (" needs a clique of" in _format_record(record)) == record["small_clique"]
+    assert "small_clique" not in scans[0]
     assert fused["summary"]["success_rate"] >= 0.75, scans
     # --odometry: LiDAR-frame poses (poses.txt holds KITTI's cam0 poses), one per scan localized
     poses = load_lidar_sequence(sequence_dir).T_map_scan[::5]

@@ -1,5 +1,6 @@
 """Localizing a drive: the fused submap of a window of scans (jaxloc.m2loc.fuse_scans) against a
-numpy fusion by ground-truth object, and localize_window on synthetic drives of small scans."""
+numpy fusion by ground-truth object, and localize_window on synthetic drives of small scans (a
+window's pose on the minimal set refused)."""
 
 from __future__ import annotations
 
@@ -7,12 +8,15 @@ import numpy as np
 import pytest
 
 from jaxloc.m2loc import (
+    WINDOW_MIN_CLIQUE,
+    LocalizationResult,
     build_map,
     fuse_scans,
     localization_errors,
     localize_scan,
     localize_window,
     m2loc_config,
+    require_clique,
 )
 from jaxloc.m2loc._query import TRACE_COUNTS
 from jaxloc.synthetic.outdoor import make_drive, make_outdoor_world
@@ -127,3 +131,35 @@ def test_window_of_small_scans_localizes_the_newest_one_without_retrace(world_an
         triplet_map, [s.points for s in two[::-1]], [s.labels for s in two[::-1]], _relative(two)
     )
     assert dict(TRACE_COUNTS) == before
+
+
+def test_a_window_pose_on_too_small_a_clique_is_refused(world_and_map):
+    """require_clique refuses a valid pose below the smallest clique (identity pose, the rest
+    kept) and leaves others alone; localize_window applies it to windows of two scans or more
+    (WINDOW_MIN_CLIQUE by default), never to a window of one scan."""
+    pose = np.eye(4)
+    pose[:3, 3] = [1.0, 2.0, 3.0]
+    on_three = LocalizationResult(
+        pose, True, 3, np.zeros((3, 2), np.int64), 1, True, 9, 0.8, 1.0, 2.0
+    )  # fmt: skip
+    refused = require_clique(on_three, 4)
+    assert not refused.valid and np.array_equal(refused.pose, np.eye(4))
+    assert refused._replace(valid=True, pose=pose) == on_three
+    assert require_clique(on_three, 3) is on_three
+    invalid = on_three._replace(valid=False)
+    assert require_clique(invalid, 4) is invalid
+    assert WINDOW_MIN_CLIQUE == 4
+
+    world, triplet_map = world_and_map
+    scans = make_drive(world.points, world.labels, world.road_normals, np.random.default_rng(5), 2)
+    window = ([s.points for s in scans[::-1]], [s.labels for s in scans[::-1]], _relative(scans))
+    fused = fuse_scans(*window)
+    alone = localize_scan(triplet_map, None, fused.points, fused.labels)
+    assert alone.valid and alone.clique_size >= WINDOW_MIN_CLIQUE
+    kept, _ = localize_window(triplet_map, *window)
+    assert kept.valid and np.array_equal(kept.pose, alone.pose)
+    beyond = alone.clique_size + 1
+    assert not localize_window(triplet_map, *window, min_clique=beyond)[0].valid
+    newest = ([window[0][0]], [window[1][0]], np.eye(4)[None])  # one scan: the map's min_inliers
+    single = localize_scan(triplet_map, None, window[0][0], window[1][0])
+    assert localize_window(triplet_map, *newest, min_clique=10**6)[0].valid == single.valid

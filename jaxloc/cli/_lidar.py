@@ -370,6 +370,17 @@ def _scan_record(ref: ScanRef, scan: ScanInstances, result, compile_s: float) ->
     return record
 
 
+def _why_not_valid(record: dict) -> str:
+    """Why a pose that passed the clique and verification tests was refused ("" otherwise)."""
+    from jaxloc.m2loc import WINDOW_MIN_CLIQUE
+
+    if record["ambiguous"]:
+        return " (ambiguous: another place fits as well)"
+    if record.get("small_clique"):
+        return f" (a window's pose needs a clique of {WINDOW_MIN_CLIQUE})"
+    return ""
+
+
 def _format_record(record: dict) -> str:
     classes = ", ".join(f"{n} x {c}" for c, n in record["instances_per_class"].items())
     how = f"clique {record['clique_size']}, scales used {record['scales_used']}"
@@ -377,8 +388,7 @@ def _format_record(record: dict) -> str:
         how = f"{record['track']}, {record['clique_size']} local associations"
     lines = [
         f"{record['scan']}: {record['instances']} instances ({classes or 'none'}); "
-        f"{'valid' if record['valid'] else 'NOT valid'}"
-        f"{' (ambiguous: another place fits as well)' if record['ambiguous'] else ''}, {how}",
+        f"{'valid' if record['valid'] else 'NOT valid'}{_why_not_valid(record)}, {how}",
         "  T_map_scan =",
     ]
     lines += ["    " + " ".join(f"{v:12.4f}" for v in row) for row in record["T_map_scan"]]
@@ -400,7 +410,7 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from jaxloc.io import save_triplet_map
-    from jaxloc.m2loc import SUCCESS_RRE_DEG, SUCCESS_RTE_M
+    from jaxloc.m2loc import SUCCESS_RRE_DEG, SUCCESS_RTE_M, WINDOW_MIN_CLIQUE, require_clique
 
     check_config_args(args)
     check_save_path(args.save_map)
@@ -436,6 +446,9 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
                 result, mode, compile_s = tracker.step(query, T_prev_scan)
             else:
                 result, compile_s = localize_one(triplet_map, query)
+                if len(window) > 1:  # a window's pose must rest on more than the minimal set
+                    refused = result.valid and result.clique_size < WINDOW_MIN_CLIQUE
+                    result = require_clique(result, WINDOW_MIN_CLIQUE)
         except ValueError as error:  # duplicate points and the like: a problem of the scan
             raise InputError(f"{ref.path}: {error}") from error
         results.append(result)
@@ -445,6 +458,8 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
         if len(window) > 1:
             records[-1]["fused_scans"] = len(window)
             records[-1]["fused_instances"] = len(query.points)
+            if tracker is None:
+                records[-1]["small_clique"] = bool(refused)
         if not args.json:
             tqdm.write(_format_record(records[-1]))
     if args.poses_out is not None:

@@ -21,7 +21,14 @@ Modules (private; everything public is re-exported here): ``_clusters`` (instanc
 ``_evaluation`` (errors and success rates), ``_classes`` and ``_road_normals`` (shared types).
 """
 
-from jaxloc.m2loc._accumulation import MERGE_RADIUS, FusedScans, fuse_scans, localize_window
+from jaxloc.m2loc._accumulation import (
+    MERGE_RADIUS,
+    WINDOW_MIN_CLIQUE,
+    FusedScans,
+    fuse_scans,
+    localize_window,
+    require_clique,
+)
 from jaxloc.m2loc._batch import localize_scans
 from jaxloc.m2loc._classes import GRAPH_CLASSES, POLE, TRAFFIC_SIGN, TRUNK
 from jaxloc.m2loc._clique import (
@@ -98,6 +105,7 @@ __all__ = [
     "TRACKED",
     "TRAFFIC_SIGN",
     "TRUNK",
+    "WINDOW_MIN_CLIQUE",
     "ClusterConfig",
     "DescriptorConfig",
     "FusedScans",
@@ -145,6 +153,7 @@ __all__ = [
     "query_capacity",
     "register",
     "register_query",
+    "require_clique",
     "summarize_localization",
     "track_step",
     "tripletloc_config",

@@ -4,7 +4,8 @@ A real scan holds few instances (13-20 trunks, poles and signs on KITTI 00), too
 place recognition to be sure. A robot has odometry: :func:`fuse_scans` expresses the instance
 centroids of a window of scans in the newest scan's frame through their relative poses and merges
 the copies of one object seen by several scans, and :func:`localize_window` localizes that submap
-with :func:`~jaxloc.m2loc.localize_scan` (the pose is the newest scan's ``T_map_scan``).
+with :func:`~jaxloc.m2loc.localize_scan` (the pose is the newest scan's ``T_map_scan``), asking
+it for a clique beyond the minimal set (:data:`WINDOW_MIN_CLIQUE`).
 
 Merging: scans are taken newest first; an instance joins the nearest fused instance of its class
 within ``merge_radius`` that no other instance of the same scan has joined (one object per scan:
@@ -25,6 +26,14 @@ from jaxloc.m2loc._map import TripletMap
 
 #: Instances of one class closer than this (metres, after odometry) are one object by default.
 MERGE_RADIUS = 1.0
+#: The smallest clique the pose of a fused window (two scans or more) may rest on. Three
+#: associations are the minimal set: they fix a pose whatever the place, and only the verification
+#: of the other vertices speaks for it, which a dense map passes by chance more often for a
+#: window's 25-40 instances than for a scan's 13-20. On development drives (seeds 2000-4000,
+#: ``experiments/m2loc_window_clique.py``) 4 kept 1003 of 1011 right window poses and refused the
+#: one wrong one; for single scans it would have cost 38 of 154 right poses, so scans keep
+#: ``TripletConfig.min_inliers``.
+WINDOW_MIN_CLIQUE = 4
 
 
 class FusedScans(NamedTuple):
@@ -129,18 +138,31 @@ def fuse_scans(
     return FusedScans(sums / np.maximum(counts, 1)[:, None], fused_labels, counts, members)
 
 
+def require_clique(result: LocalizationResult, min_clique: int) -> LocalizationResult:
+    """``result``, or where its valid pose rests on fewer than ``min_clique`` clique vertices the
+    same result refused (``valid`` False, identity ``pose``)."""
+    if not result.valid or result.clique_size >= min_clique:
+        return result
+    return result._replace(valid=False, pose=np.eye(4))
+
+
 def localize_window(
     triplet_map: TripletMap,
     points: list[np.ndarray],
     labels: list[np.ndarray],
     T_newest_scan: np.ndarray,
     merge_radius: float = MERGE_RADIUS,
+    min_clique: int = WINDOW_MIN_CLIQUE,
 ) -> tuple[LocalizationResult, FusedScans]:
     """Localize the newest scan of a window through the fused submap of the whole window.
 
-    Arguments as :func:`fuse_scans`, with the described map (:func:`~jaxloc.m2loc.build_map`).
-    Returns the :class:`~jaxloc.m2loc.LocalizationResult` of the fused submap (its ``pose`` is
-    ``T_map_newest``; its inlier indices index the fused instances) and the fusion itself.
+    Arguments as :func:`fuse_scans`, with the described map (:func:`~jaxloc.m2loc.build_map`);
+    ``min_clique``: the smallest clique a window of two scans or more may rest on
+    (:data:`WINDOW_MIN_CLIQUE`; a window of one scan is a scan and keeps the map's
+    ``min_inliers``). Returns the :class:`~jaxloc.m2loc.LocalizationResult` of the fused submap
+    (its ``pose`` is ``T_map_newest``; its inlier indices index the fused instances) and the
+    fusion itself.
     """
     fused = fuse_scans(points, labels, T_newest_scan, merge_radius)
-    return localize_scan(triplet_map, None, fused.points, fused.labels), fused
+    result = localize_scan(triplet_map, None, fused.points, fused.labels)
+    return require_clique(result, min_clique) if len(points) > 1 else result, fused
