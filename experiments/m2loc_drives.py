@@ -34,6 +34,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+from _atomic import write_text_atomic
 
 from jaxloc.io import load_instance_map, load_road_normals
 from jaxloc.m2loc import (
@@ -336,7 +337,7 @@ def main() -> None:
             f"{stats['rre']:.2f} | {stats['wrong']} | {stats['false']}/{args.drives} | "
             f"{seconds:.3f} | {tracked} |"
         )
-    args.out.write_text("\n".join(lines) + "\n")
+    write_text_atomic(args.out, "\n".join(lines) + "\n")
     print("\n".join(lines))
 
 
