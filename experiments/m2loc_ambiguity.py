@@ -67,20 +67,10 @@ def count(own, foreign, truths, keep) -> tuple[int, int, int]:
 
 
 def rows_of(seed: int, name: str, all_maps: list, num_drives: int) -> list[tuple]:
-    other, drive_sets, chains = drives.own_and_foreign_drives(
-        all_maps, name, seed, num_drives, 10, 11, (0.05, 0.5)
-    )
+    truths, by_window = drives.last_scan_queries(all_maps, name, seed, num_drives, (1, 3))
     _, points, labels, normals = next(m for m in all_maps if m[0] == name)
-    truths = [d[-1].T_map_scan for d in drive_sets[name]]
     rows = []
-    for k in (1, 3):
-
-        def queries_of(which, k=k):
-            pairs = zip(drive_sets[which], chains[which], strict=True)
-            return [drives.fused_query(d, c, len(d) - 1, k) for d, c in pairs]
-
-        own, foreign = queries_of(name), queries_of(other)
-        capacity = drives.band(max(len(q[0]) for q in own + foreign))
+    for k, (own, foreign, capacity) in by_window.items():
         results = {}
         for margin in (None, 0.0):
             config = m2loc_config(3, query_capacity=capacity, ambiguity_margin=margin)

@@ -179,6 +179,25 @@ def own_and_foreign_drives(all_maps, only, seed, count, length, max_kept, noise)
     return other, drives, chains
 
 
+def last_scan_queries(all_maps, name: str, seed: int, count: int, windows) -> tuple:
+    """The queries the development scripts judge: on ``count`` drives of map ``name`` (and of its
+    foreign map) with this script's default drive settings, the fused window of the last k scans
+    of each drive for every k of ``windows`` (k = 1: the last scan).
+
+    Returns ``(truths, {k: (own queries, foreign queries, capacity)})``: the last scans' true
+    ``T_map_scan`` and per k the (points, labels) queries and the capacity band of the largest.
+    """
+    other, drives, chains = own_and_foreign_drives(all_maps, name, seed, count, 10, 11, (0.05, 0.5))
+    by_window = {}
+    for k in windows:
+        own, foreign = (
+            [fused_query(d, c, len(d) - 1, k) for d, c in zip(drives[w], chains[w], strict=True)]
+            for w in (name, other)
+        )
+        by_window[k] = own, foreign, band(max(len(q[0]) for q in own + foreign))
+    return [d[-1].T_map_scan for d in drives[name]], by_window
+
+
 def rows_of_map(args, only: str) -> list:
     """The rows of one map (run in a process of its own: a process that compiles every map's
     programs ran out of memory mappings on this machine)."""

@@ -47,20 +47,10 @@ def outcomes(triplet_map, queries, truths) -> list[tuple[int, int, bool]]:
 
 
 def rows_of(seed: int, name: str, all_maps: list, num_drives: int) -> list[tuple]:
-    other, drive_sets, chains = drives.own_and_foreign_drives(
-        all_maps, name, seed, num_drives, 10, 11, (0.05, 0.5)
-    )
+    truths, by_window = drives.last_scan_queries(all_maps, name, seed, num_drives, WINDOWS)
     _, points, labels, normals = next(m for m in all_maps if m[0] == name)
-    truths = [d[-1].T_map_scan for d in drive_sets[name]]
     rows = []
-    for k in WINDOWS:
-
-        def queries_of(which, k=k):
-            pairs = zip(drive_sets[which], chains[which], strict=True)
-            return [drives.fused_query(d, c, len(d) - 1, k) for d, c in pairs]
-
-        own, foreign = queries_of(name), queries_of(other)
-        capacity = drives.band(max(len(q[0]) for q in own + foreign))
+    for k, (own, foreign, capacity) in by_window.items():
         triplet_map = build_map(points, labels, m2loc_config(3, query_capacity=capacity), normals)
         found = outcomes(triplet_map, own, truths), outcomes(triplet_map, foreign, None)
         rows.append((name, seed, k, *found))
