@@ -6,7 +6,7 @@ same consistency graphs, time networkx's exact maximum clique (``max_weight_cliq
 exact solver, and count how often the jitted ``max_clique`` reaches the exact size.
 
     JAX_PLATFORMS=cpu python benchmarks/triplet.py --queries 30 [--maps KAIST04] [--stages]
-        [--max-kept 25] [--seed 0] [--config tripletloc|m2loc3|m2loc3-robust|...]
+        [--max-kept 25] [--seed 0] [--config tripletloc|m2loc3|m2loc3-robust|...] [--capacity 64]
 
 ``--stages`` adds a per-stage profile of ``register_query`` (each stage jitted on its own, median
 ms over the queries): matching, consistency graph + clique, pose, and the whole jitted call.
@@ -15,6 +15,7 @@ ms over the queries): matching, consistency graph + clique, pose, and the whole 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from functools import partial
 from pathlib import Path
@@ -97,9 +98,12 @@ def main() -> None:
         default="tripletloc",
         help="localization configuration (default tripletloc, as sessions 3-4 measured)",
     )
+    parser.add_argument(
+        "--capacity", type=int, default=None, help="pad every query to this size (default: by size)"
+    )
     args = parser.parse_args()
-    config = CONFIGS[args.config]()
-    print(f"configuration: {args.config}")
+    config = dataclasses.replace(CONFIGS[args.config](), query_capacity=args.capacity)
+    print(f"configuration: {args.config}, query capacity {args.capacity or 'by size band'}")
     print(
         "| map | queries | vertices (median) | associations (median) | desc ms med/p90 | "
         "match+clique+pose ms med/p90 | max_clique ms med | networkx ms med | exact (host) ms med "
