@@ -12,9 +12,7 @@ m, RRE < 10 deg), wrong valid poses, and false accepts (the next map's drives wi
 
 from __future__ import annotations
 
-import argparse
 import sys
-from pathlib import Path
 
 import m2loc_drives as drives
 import numpy as np
@@ -94,18 +92,8 @@ def rows_of(seed: int, name: str, all_maps: list, num_drives: int) -> list[tuple
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[2000, 3000, 4000])
-    parser.add_argument("--drives", type=int, default=20)
-    parser.add_argument("--maps", nargs="+", help="only these maps (default: all)")
-    parser.add_argument("--out", type=Path, default=drives.OUT / "ambiguity.md")
-    args = parser.parse_args()
-    all_maps = list(drives.maps())
-    rows = []
-    for seed in args.seeds:
-        for name, *_ in all_maps:
-            if args.maps is None or name in args.maps:
-                rows.extend(rows_of(seed, name, all_maps, args.drives))
+    args = drives.development_parser(__doc__, "ambiguity.md").parse_args()
+    rows = drives.rows_over_seeds_and_maps(args, rows_of)
     head = " | ".join(["without the check"] + [f"margin {m}" for m in MARGINS])
     lines = [
         "# The uniqueness check's margin on development drives",

@@ -179,6 +179,28 @@ def own_and_foreign_drives(all_maps, only, seed, count, length, max_kept, noise)
     return other, drives, chains
 
 
+def development_parser(doc: str, out_name: str) -> argparse.ArgumentParser:
+    """The command line of the development scripts: ``--seeds``, ``--drives``, ``--maps`` and
+    ``--out`` (default ``OUT / out_name``)."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[2000, 3000, 4000])
+    parser.add_argument("--drives", type=int, default=20)
+    parser.add_argument("--maps", nargs="+", help="only these maps (default: all)")
+    parser.add_argument("--out", type=Path, default=OUT / out_name)
+    return parser
+
+
+def rows_over_seeds_and_maps(args: argparse.Namespace, rows_of) -> list:
+    """``rows_of(seed, name, all_maps, drives)`` for every seed and (selected) map, in order."""
+    all_maps = list(maps())
+    rows = []
+    for seed in args.seeds:
+        for name, *_ in all_maps:
+            if args.maps is None or name in args.maps:
+                rows.extend(rows_of(seed, name, all_maps, args.drives))
+    return rows
+
+
 def last_scan_queries(all_maps, name: str, seed: int, count: int, windows) -> tuple:
     """The queries the development scripts judge: on ``count`` drives of map ``name`` (and of its
     foreign map) with this script's default drive settings, the fused window of the last k scans

@@ -13,7 +13,6 @@ a valid pose). A larger smallest clique only refuses poses, so one run judges ev
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -71,19 +70,10 @@ def cells(own: list, foreign: list) -> list[tuple[int, int, int]]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--seeds", type=int, nargs="+", default=[2000, 3000, 4000])
-    parser.add_argument("--drives", type=int, default=20)
-    parser.add_argument("--maps", nargs="+", help="only these maps (default: all)")
-    parser.add_argument("--out", type=Path, default=drives.OUT / "window_clique.md")
+    parser = drives.development_parser(__doc__, "window_clique.md")
     parser.add_argument("--raw", type=Path, help="JSON of every valid pose: (size, clique, right)")
     args = parser.parse_args()
-    all_maps = list(drives.maps())
-    rows = []
-    for seed in args.seeds:
-        for name, *_ in all_maps:
-            if args.maps is None or name in args.maps:
-                rows.extend(rows_of(seed, name, all_maps, args.drives))
+    rows = drives.rows_over_seeds_and_maps(args, rows_of)
     head = " | ".join(f"smallest clique {c}" for c in SMALLEST)
     lines = [
         "# The smallest clique of a fused window, on development drives",
