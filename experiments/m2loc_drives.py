@@ -40,10 +40,11 @@ from jaxloc.io import load_instance_map, load_road_normals
 from jaxloc.m2loc import (
     TRACKED,
     WINDOW_MIN_CLIQUE,
+    WINDOW_MIN_INSTANCES,
     TrackConfig,
     Tracker,
     build_map,
-    fuse_scans,
+    grow_window,
     localization_errors,
     localize_scan,
     m2loc_config,
@@ -93,16 +94,20 @@ def odometry_chain(drive, rng, sigma_m, sigma_deg) -> np.ndarray:
     return np.stack(chain)
 
 
-def fused_query(drive, chain, end: int, k: int):
-    """Points and labels of the fused window of scans ``end - k + 1 .. end`` (newest frame)."""
-    window = range(end, max(end - k, -1), -1)  # newest first
+def fused_query(drive, chain, end: int, k: int, most: int | None = None, min_instances: int = 0):
+    """Points, labels and scans fused of the window of scan ``end``: its last ``k`` scans, grown
+    with older ones up to ``most`` (default ``k``) while it holds fewer than ``min_instances``
+    fused instances (``grow_window``, as ``localize-lidar --accumulate k`` does)."""
+    window = range(end, max(end - (most or k), -1), -1)  # newest first
     newest = np.linalg.inv(chain[end])
-    fused = fuse_scans(
+    fused = grow_window(
         [drive[j].points for j in window],
         [drive[j].labels for j in window],
         np.stack([newest @ chain[j] for j in window]),
+        k,
+        min_instances,
     )
-    return fused.points, fused.labels
+    return fused.points, fused.labels, fused.members.shape[1]
 
 
 def judge(pose, valid, truth) -> tuple[bool, bool, float, float]:
@@ -150,7 +155,7 @@ def run_tracker(tracker, queries_per_drive, capacity, chains) -> tuple[list, lis
         state, steps = tracker.init(), []
         for i, query in enumerate(queries):
             odometry = np.linalg.inv(chain[i - 1]) @ chain[i] if i else np.eye(4)
-            padded = pad_scan(*query, config, capacity)
+            padded = pad_scan(*query[:2], config, capacity)
             start = time.perf_counter()
             state, out = jax.block_until_ready(track_step(tracker, state, padded, odometry))
             seconds.append((time.perf_counter() - start, int(out.mode)))
@@ -213,7 +218,10 @@ def last_scan_queries(all_maps, name: str, seed: int, count: int, windows) -> tu
     by_window = {}
     for k in windows:
         own, foreign = (
-            [fused_query(d, c, len(d) - 1, k) for d, c in zip(drives[w], chains[w], strict=True)]
+            [
+                fused_query(d, c, len(d) - 1, k)[:2]
+                for d, c in zip(drives[w], chains[w], strict=True)
+            ]
             for w in (name, other)
         )
         by_window[k] = own, foreign, band(max(len(q[0]) for q in own + foreign))
@@ -234,50 +242,74 @@ def rows_of_map(args, only: str) -> list:
         own, foreign = drives[name], drives[other]
         truths = [d[-1].T_map_scan for d in own]
 
-        def windows_of(k, which, chain_set):
-            return [fused_query(d, c, len(d) - 1, k) for d, c in zip(which, chain_set, strict=True)]
+        def windows_of(window, which, chain_set):
+            k, most, instances = window
+            return [
+                fused_query(d, c, len(d) - 1, k, most, instances)
+                for d, c in zip(which, chain_set, strict=True)
+            ]
 
-        queries = {1: [(d[-1].points, d[-1].labels) for d in own]}
-        foreign_queries = {1: [(d[-1].points, d[-1].labels) for d in foreign]}
-        for k in args.windows:
-            queries[k] = windows_of(k, own, chains[name])
-            foreign_queries[k] = windows_of(k, foreign, chains[other])
+        # (K, M, N): the last K scans, grown up to M while fewer than N fused instances
+        single = (1, 1, 0)
+        windows = [(k, k, 0) for k in args.windows]
+        if args.window_instances > 0:
+            windows += [(k, 2 * k, args.window_instances) for k in args.windows]
+        queries = {single: [(d[-1].points, d[-1].labels, 1) for d in own]}
+        foreign_queries = {single: [(d[-1].points, d[-1].labels, 1) for d in foreign]}
+        for window in windows:
+            queries[window] = windows_of(window, own, chains[name])
+            foreign_queries[window] = windows_of(window, foreign, chains[other])
         capacity = {
-            k: band(max(len(q[0]) for q in queries[k] + foreign_queries[k])) for k in queries
+            w: band(max(len(q[0]) for q in queries[w] + foreign_queries[w])) for w in queries
         }
         robust = {}
         for row, make_config in SINGLE.items():
-            triplet_map = build_map(points, labels, make_config(capacity[1]), normals)
+            triplet_map = build_map(points, labels, make_config(capacity[single]), normals)
             if row == "M2Loc robust":
-                robust[capacity[1]] = triplet_map
-            stats, seconds = run_one_shot(triplet_map, queries[1], truths, foreign_queries[1])
-            size = np.median([len(q[0]) for q in queries[1]])
+                robust[capacity[single]] = triplet_map
+            stats, seconds = run_one_shot(
+                triplet_map, queries[single], truths, foreign_queries[single]
+            )
+            size = np.median([len(q[0]) for q in queries[single]])
             rows.append((name, f"{row}, single scan", stats, seconds, float(size), None))
             print(rows[-1], file=sys.stderr, flush=True)
-        for k in args.windows:
-            if capacity[k] not in robust:
-                config = m2loc_config(3, query_capacity=capacity[k])
-                robust[capacity[k]] = build_map(points, labels, config, normals)
+        for window in windows:
+            k, most, instances = window
+            if capacity[window] not in robust:
+                config = m2loc_config(3, query_capacity=capacity[window])
+                robust[capacity[window]] = build_map(points, labels, config, normals)
             stats, seconds = run_one_shot(
-                robust[capacity[k]], queries[k], truths, foreign_queries[k], WINDOW_MIN_CLIQUE
+                robust[capacity[window]],
+                queries[window],
+                truths,
+                foreign_queries[window],
+                WINDOW_MIN_CLIQUE,
             )
-            size = float(np.median([len(q[0]) for q in queries[k]]))
-            rows.append((name, f"M2Loc robust, --accumulate {k}", stats, seconds, size, None))
+            size = float(np.median([len(q[0]) for q in queries[window]]))
+            how = (
+                f"{k} to {most} scans for {instances} instances, mean "
+                f"{np.mean([q[2] for q in queries[window]]):.2f}"
+                if instances
+                else f"{k} scans"
+            )
+            label = f"M2Loc robust, --accumulate {k} ({how})"
+            rows.append((name, label, stats, seconds, size, None))
             print(rows[-1], file=sys.stderr, flush=True)
         track_configs = [("", TrackConfig())]
         if args.compare_confirm:
             track_configs.append((", no confirmation", TrackConfig(confirm=False)))
         for k, (suffix, track_config) in itertools.product(args.track_windows, track_configs):
+            most, instances = (2 * k, args.window_instances) if k > 1 else (1, 0)
             per_drive = {
                 which: [
-                    [fused_query(d, c, i, k) for i in range(len(d))]
+                    [fused_query(d, c, i, k, most, instances) for i in range(len(d))]
                     for d, c in zip(drives[which], chains[which], strict=True)
                 ]
                 for which in (name, other)
             }
             size = band(max(len(q[0]) for runs in per_drive.values() for r in runs for q in r))
             # the step runs at the padded scan's size, whatever the map's query capacity
-            tracker = Tracker(robust[capacity[1]], track_config)
+            tracker = Tracker(robust[capacity[single]], track_config)
             run_tracker(tracker, per_drive[name][:1], size, chains[name][:1])  # compile
             runs, seconds = run_tracker(tracker, per_drive[name], size, chains[name])
             judged_last = [judge(*run[-1][:2], t) for run, t in zip(runs, truths, strict=True)]
@@ -311,6 +343,13 @@ def main() -> None:
     parser.add_argument("--odometry-noise", type=float, nargs=2, default=(0.05, 0.5))
     parser.add_argument("--windows", type=int, nargs="+", default=[2, 3, 5])
     parser.add_argument("--track-windows", type=int, nargs="+", default=[1, 3])
+    parser.add_argument(
+        "--window-instances",
+        type=int,
+        default=WINDOW_MIN_INSTANCES,
+        help="windows of K scans grow up to 2K scans while their fused submap holds fewer "
+        "instances than this (0: fixed windows only; also the tracker's windows)",
+    )
     parser.add_argument("--maps", nargs="+", help="only these maps (default: all)")
     parser.add_argument(
         "--compare-confirm", action="store_true", help="add tracking rows without confirmation"
@@ -350,16 +389,19 @@ def main() -> None:
         f"Command: `JAX_PLATFORMS=cpu python experiments/m2loc_drives.py --drives {args.drives} "
         f"--seed {args.seed} --length {args.length} --max-kept {args.max_kept} --windows "
         f"{' '.join(map(str, args.windows))} --track-windows "
-        f"{' '.join(map(str, args.track_windows))}"
+        f"{' '.join(map(str, args.track_windows))} --window-instances {args.window_instances}"
         + (f" --maps {' '.join(args.maps)}" if args.maps else "")
         + (" --compare-confirm" if args.compare_confirm else "")
         + "`",
         "",
-        "Judged on each drive's last scan. Tracking rows: the tracker ran over the whole drive; "
-        "'wrong' counts valid poses off by more than 7.5 m / 10 deg at any scan, a false accept is "
-        "a foreign drive with a valid pose at any scan; 'tracked' is the share of all steps the "
-        "local association verified and their median wall time; then the share of all scans "
-        "of the drives with a right valid pose.",
+        "Judged on each drive's last scan. `--accumulate K (K to 2K scans for N instances)`: the "
+        "window grows beyond its last K scans, up to 2K, while its fused submap holds fewer than "
+        "N instances (`grow_window`, the command line's default); `(K scans)`: the fixed window. "
+        "The tracker's windows grow the same way. Tracking rows: the tracker ran over the whole "
+        "drive; 'wrong' counts valid poses off by more than 7.5 m / 10 deg at any scan, a false "
+        "accept is a foreign drive with a valid pose at any scan; 'tracked' is the share of all "
+        "steps the local association verified and their median wall time; then the share of all "
+        "scans of the drives with a right valid pose.",
         "",
         "| map | method | vertices (median) | success | RTE m (median) | RRE deg (median) | "
         "wrong valid poses | false accepts (foreign drives) | s per scan | tracked: share, "

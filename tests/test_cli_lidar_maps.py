@@ -20,7 +20,7 @@ from _helipr_fixtures import FIRST_STAMP, PERIOD_NS, ns_to_seconds, tum_line, wr
 from jaxloc.cli import main
 from jaxloc.cli._lidar import _format_record
 from jaxloc.io import load_lidar_sequence
-from jaxloc.m2loc import WINDOW_MIN_CLIQUE
+from jaxloc.m2loc import WINDOW_MIN_CLIQUE, WINDOW_MIN_INSTANCES
 from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
 from jaxloc.synthetic.outdoor import make_outdoor_world
 
@@ -349,14 +349,27 @@ def test_poses_out_leaves_invalid_scans_out_of_tum_only(tmp_path, capsys):
 
 def test_accumulate_fuses_the_last_scans_through_odometry(built, sequence_dir, tmp_path, capsys):
     """--accumulate 3 localizes each scan with the two before it (odometry: the sequence's poses,
-    or the same poses from --odometry, with the same results); bad values exit 2."""
+    or the same poses from --odometry, with the same results), and with older ones while the
+    window holds fewer than --window-instances (up to --accumulate-max); bad values exit 2."""
     saved = built[1]
     argv = [sequence_dir, "--every", "5", "--json", "--no-progress", "--accumulate", "3"]
-    code, out, err = run(["localize-lidar", saved, *argv], capsys)
-    assert code == 0, err
-    fused = json.loads(out)
+    fused_scans = {}
+    for instances in (0, 1000, None):
+        grow = [] if instances is None else ["--window-instances", str(instances)]
+        code, out, err = run(["localize-lidar", saved, *argv, *grow], capsys)
+        assert code == 0, err
+        fused_scans[instances] = [s.get("fused_scans", 1) for s in json.loads(out)["scans"]]
+    assert fused_scans[0] == [1, 2, 3, 3]  # a fixed window of 3
+    assert fused_scans[1000] == [1, 2, 3, 4]  # grown to every scan so far (the bound is 6)
+    fused = json.loads(out)  # the default, WINDOW_MIN_INSTANCES
     scans = fused["scans"]
-    assert [s.get("fused_scans", 1) for s in scans] == [1, 2, 3, 3]
+    for i, record in enumerate(scans[1:], start=1):
+        scans_so_far = i + 1
+        assert min(3, scans_so_far) <= fused_scans[None][i] <= scans_so_far
+        if fused_scans[None][i] > min(3, scans_so_far):  # grown: to enough, or to every scan
+            assert record["fused_scans"] == scans_so_far or (
+                record["fused_instances"] >= WINDOW_MIN_INSTANCES
+            )
     for record in scans[1:]:
         assert record["instances"] < record["fused_instances"]
         # a window's pose rests on more than the minimal set, or is refused and says so
@@ -378,6 +391,12 @@ def test_accumulate_fuses_the_last_scans_through_odometry(built, sequence_dir, t
     for bad, message in (
         (["--accumulate", "0"], "--accumulate must be >= 1"),
         (["--odometry", odometry], "only used with --accumulate"),
+        (["--window-instances", "5"], "--window-instances is only used with --accumulate K > 1"),
+        (
+            ["--accumulate", "3", "--accumulate-max", "2"],
+            "--accumulate-max must be >= --accumulate",
+        ),
+        (["--accumulate", "2", "--window-instances", "-1"], "--window-instances must be >= 0"),
     ):
         code, _, err = run(["localize-lidar", saved, sequence_dir, *bad], capsys)
         assert code == 2 and message in err, err

@@ -1,6 +1,7 @@
 """Localizing a drive: the fused submap of a window of scans (jaxloc.m2loc.fuse_scans) against a
-numpy fusion by ground-truth object, and localize_window on synthetic drives of small scans (a
-window's pose on the minimal set refused)."""
+numpy fusion by ground-truth object, a window grown on sparse stretches (grow_window) against
+fusing every prefix, and localize_window on synthetic drives of small scans (a window's pose on
+the minimal set refused)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from jaxloc.m2loc import (
     LocalizationResult,
     build_map,
     fuse_scans,
+    grow_window,
     localization_errors,
     localize_scan,
     localize_window,
@@ -163,3 +165,63 @@ def test_a_window_pose_on_too_small_a_clique_is_refused(world_and_map):
     newest = ([window[0][0]], [window[1][0]], np.eye(4)[None])  # one scan: the map's min_inliers
     single = localize_scan(triplet_map, None, window[0][0], window[1][0])
     assert localize_window(triplet_map, *newest, min_clique=10**6)[0].valid == single.valid
+
+
+def _random_window(rng, num_scans=6, per_scan=(2, 9)):
+    """Scans of a 30-object street, each seeing a few of them, in fuse_scans' order."""
+    grid = np.stack(np.meshgrid(np.arange(6), np.arange(5)), -1).reshape(-1, 2) * 6.0
+    objects = np.column_stack([grid, rng.uniform(0, 4, 30)])
+    classes = rng.choice([15, 17, 18], 30)
+    poses = [np.eye(4)] + [_yaw_pose(rng) for _ in range(num_scans - 1)]
+    points, labels = [], []
+    for pose in poses:
+        seen = rng.choice(30, rng.integers(*per_scan), replace=False)
+        noisy = objects[seen] + rng.normal(0, 0.1, (seen.size, 3))
+        points.append((noisy - pose[:3, 3]) @ pose[:3, :3])
+        labels.append(classes[seen])
+    return points, labels, np.stack(poses)
+
+
+def test_a_window_grows_with_older_scans_until_it_holds_enough_instances():
+    """grow_window against fusing every prefix of the scans given: the shortest prefix of at least
+    least_scans scans holding min_instances fused instances, else all; the same fusion."""
+    rng = np.random.default_rng(7)
+    for trial in range(12):
+        points, labels, poses = _random_window(rng)
+        held = [len(fuse_scans(points[:k], labels[:k], poses[:k]).points) for k in range(1, 7)]
+        least, instances = 1 + trial % 4, int(rng.integers(0, 30))
+        expected = next((k for k in range(least, 7) if held[k - 1] >= instances), 6)
+        grown = grow_window(points, labels, poses, least, instances)
+        assert grown.members.shape[1] == expected, (held, least, instances)
+        reference = fuse_scans(points[:expected], labels[:expected], poses[:expected])
+        for got, want in zip(grown, reference, strict=True):
+            np.testing.assert_array_equal(got, want)
+    # fewer scans than least_scans (the start of a drive): all of them; bad sizes raise
+    assert grow_window(points[:2], labels[:2], poses[:2], 3, 0).members.shape[1] == 2
+    with pytest.raises(ValueError, match="least_scans >= 1 and min_instances >= 0"):
+        grow_window(points, labels, poses, 0, 5)
+    with pytest.raises(ValueError, match="least_scans >= 1 and min_instances >= 0"):
+        grow_window(points, labels, poses, 2, -1)
+
+
+def test_localize_window_grows_a_sparse_window(world_and_map):
+    """least_scans: localize_window fuses what grow_window would and localizes that (the clique
+    rule applied to the grown window) in the program every window runs; without it every scan
+    given is fused."""
+    world, triplet_map = world_and_map
+    scans = make_drive(
+        world.points, world.labels, world.road_normals, np.random.default_rng(2), 5, max_kept=5
+    )
+    window = ([s.points for s in scans[::-1]], [s.labels for s in scans[::-1]], _relative(scans))
+    grown = grow_window(*window, 2, 14)
+    assert 2 < grown.members.shape[1] < 5  # a sparse stretch: more than 2 scans, fewer than all
+    localize_scan(triplet_map, None, window[0][0], window[1][0])  # compile, if needed
+    before = dict(TRACE_COUNTS)
+    result, fused = localize_window(triplet_map, *window, least_scans=2, min_instances=14)
+    assert dict(TRACE_COUNTS) == before
+    np.testing.assert_array_equal(fused.points, grown.points)
+    expected = require_clique(
+        localize_scan(triplet_map, None, grown.points, grown.labels), WINDOW_MIN_CLIQUE
+    )
+    assert result.valid == expected.valid and np.array_equal(result.pose, expected.pose)
+    assert localize_window(triplet_map, *window)[1].members.shape[1] == 5

@@ -197,7 +197,21 @@ def build_parser() -> argparse.ArgumentParser:
         default=1,
         metavar="K",
         help="localize each scan with the instances of the last K scans fused through odometry "
-        "(default 1: each scan alone)",
+        "(default 1: each scan alone); the window grows with older scans while it holds few "
+        "instances (--window-instances, --accumulate-max)",
+    )
+    lidar.add_argument(
+        "--window-instances",
+        type=int,
+        metavar="N",
+        help="with --accumulate K: add older scans while the fused window holds fewer than N "
+        "instances (default: jaxloc.m2loc.WINDOW_MIN_INSTANCES; 0: exactly K scans)",
+    )
+    lidar.add_argument(
+        "--accumulate-max",
+        type=int,
+        metavar="M",
+        help="with --accumulate K: the most scans a window grows to (default 2K)",
     )
     lidar.add_argument(
         "--odometry",

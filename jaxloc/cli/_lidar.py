@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxloc.cli._errors import InputError
+from jaxloc.cli._lidar_drive import DriveTracker, fuse_window, window_odometry, window_sizes
 from jaxloc.cli._lidar_scans import (
     POSES_OUT_HELP,
     ScanInstances,
@@ -254,96 +255,6 @@ def localize_one(triplet_map, scan: ScanInstances):
     return result, max(first - (time.perf_counter() - start), 0.0)
 
 
-def window_odometry(refs: list[ScanRef], args: argparse.Namespace) -> np.ndarray | None:
-    """(S, 4, 4) odometry poses of the scans for ``--accumulate K > 1`` or ``--track`` (else
-    None): ``--odometry FILE`` (matched to the scans like ``--gt``), else the sequence's own
-    poses."""
-    if args.accumulate < 1:
-        raise InputError(f"--accumulate must be >= 1, got {args.accumulate}")
-    needed = args.accumulate > 1 or args.track
-    if args.odometry is not None and not needed:
-        raise InputError("--odometry is only used with --accumulate K > 1 or --track")
-    if not needed:
-        return None
-    if args.odometry is not None:
-        refs = attach_ground_truth(refs, args.odometry)
-    missing = [ref.path.name for ref in refs if ref.T_gt is None]
-    if missing:
-        where = "--odometry" if args.odometry is not None else "the sequence's poses"
-        raise InputError(
-            f"--accumulate and --track need a pose for every scan; {where} has none for "
-            f"{len(missing)} scan(s) (first: {missing[0]}); give --odometry FILE"
-        )
-    return np.stack([ref.T_gt for ref in refs])
-
-
-def fuse_window(window: list[ScanInstances], poses: np.ndarray) -> ScanInstances:
-    """The fused submap of ``window`` (newest first) in the newest scan's frame (as
-    :func:`jaxloc.m2loc.localize_window`); ``poses`` (K', 4, 4) odometry poses, newest first (at
-    least as many as the window)."""
-    from jaxloc.m2loc import fuse_scans
-
-    newest = np.linalg.inv(poses[0])
-    relative = np.stack([newest @ pose for pose in poses[: len(window)]])
-    fused = fuse_scans([s.points for s in window], [s.labels for s in window], relative)
-    return ScanInstances(fused.points, fused.labels, 0.0)
-
-
-#: The names of :data:`jaxloc.m2loc.TRACKED`, ``RELOCALIZED``, ``LOST`` and ``PENDING`` in the
-#: records.
-TRACK_MODES = ("tracked", "relocalized", "lost", "pending")
-
-
-class DriveTracker:
-    """``--track``: a :class:`jaxloc.m2loc.Tracker` stepped scan by scan (one compiled step per
-    query size band; its first run in a band is run twice, the pure step from the same state, to
-    time the step alone)."""
-
-    def __init__(self, triplet_map):
-        from jaxloc.m2loc import Tracker
-
-        self.tracker = Tracker(triplet_map)
-        self.state = self.tracker.init()
-        self.bands: set[int] = set()
-
-    def step(self, scan: ScanInstances, T_prev_scan: np.ndarray):
-        """Returns a :class:`~jaxloc.m2loc.LocalizationResult` (``clique_size``: the local
-        associations), the mode's name and the compile or load time (s)."""
-        import jax
-
-        from jaxloc.m2loc import LocalizationResult, pad_scan, query_capacity, track_step
-
-        config = self.tracker.triplet_map.config
-        band = query_capacity(max(len(scan.points), 1), config)
-        padded = pad_scan(scan.points, scan.labels, config, band)
-
-        def run():
-            start = time.perf_counter()
-            out = jax.block_until_ready(track_step(self.tracker, self.state, padded, T_prev_scan))
-            return out, time.perf_counter() - start
-
-        (state, out), seconds = run()
-        compile_s = 0.0
-        if band not in self.bands:
-            self.bands.add(band)
-            (state, out), again = run()
-            compile_s, seconds = max(seconds - again, 0.0), again
-        self.state = state
-        result = LocalizationResult(
-            pose=np.asarray(out.T_map_scan, np.float64),
-            valid=bool(out.valid),
-            clique_size=int(out.num_associations),
-            inliers=np.zeros((0, 2), np.int64),
-            scales_used=0,
-            clique_exact=False,
-            num_associations=int(out.num_associations),
-            inlier_fraction=float(out.inlier_fraction),
-            descriptor_time_ms=0.0,
-            match_time_ms=1e3 * seconds,
-        )
-        return result, TRACK_MODES[int(out.mode)], compile_s
-
-
 def _scan_record(ref: ScanRef, scan: ScanInstances, result, compile_s: float) -> dict:
     from jaxloc.m2loc import localization_errors
 
@@ -417,6 +328,7 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
     check_poses_out(args)
     if args.every < 1:
         raise InputError(f"--every must be >= 1, got {args.every}")
+    least_scans, most_scans, instances = window_sizes(args)
     refs = expand_scans(args.scans, args)
     if args.gt is not None:
         refs = attach_ground_truth(refs, args.gt)
@@ -438,15 +350,17 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
     show_bar = len(refs) > 1 and not args.no_progress
     for i, ref in enumerate(tqdm(refs, unit="scan", disable=not show_bar)):
         scan = load_scan(ref, classes)
-        window = [scan, *window][: args.accumulate]  # newest first
+        window = [scan, *window][:most_scans]  # newest first
         try:
-            query = scan if len(window) == 1 else fuse_window(window, odometry[i::-1])
+            query, fused_scans = scan, 1
+            if len(window) > 1:
+                query, fused_scans = fuse_window(window, odometry[i::-1], least_scans, instances)
             if tracker is not None:
                 T_prev_scan = np.linalg.inv(odometry[i - 1]) @ odometry[i] if i else np.eye(4)
                 result, mode, compile_s = tracker.step(query, T_prev_scan)
             else:
                 result, compile_s = localize_one(triplet_map, query)
-                if len(window) > 1:  # a window's pose must rest on more than the minimal set
+                if fused_scans > 1:  # a window's pose must rest on more than the minimal set
                     refused = result.valid and result.clique_size < WINDOW_MIN_CLIQUE
                     result = require_clique(result, WINDOW_MIN_CLIQUE)
         except ValueError as error:  # duplicate points and the like: a problem of the scan
@@ -455,8 +369,8 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
         records.append(_scan_record(ref, scan, result, compile_s))
         if tracker is not None:
             records[-1]["track"] = mode
-        if len(window) > 1:
-            records[-1]["fused_scans"] = len(window)
+        if fused_scans > 1:
+            records[-1]["fused_scans"] = fused_scans
             records[-1]["fused_instances"] = len(query.points)
             if tracker is None:
                 records[-1]["small_clique"] = bool(refused)

@@ -24,8 +24,10 @@ Modules (private; everything public is re-exported here): ``_clusters`` (instanc
 from jaxloc.m2loc._accumulation import (
     MERGE_RADIUS,
     WINDOW_MIN_CLIQUE,
+    WINDOW_MIN_INSTANCES,
     FusedScans,
     fuse_scans,
+    grow_window,
     localize_window,
     require_clique,
 )
@@ -106,6 +108,7 @@ __all__ = [
     "TRAFFIC_SIGN",
     "TRUNK",
     "WINDOW_MIN_CLIQUE",
+    "WINDOW_MIN_INSTANCES",
     "ClusterConfig",
     "DescriptorConfig",
     "FusedScans",
@@ -135,6 +138,7 @@ __all__ = [
     "fit_config_to_map",
     "fuse_instances",
     "fuse_scans",
+    "grow_window",
     "greedy_cliques",
     "grid_nearest_same_class",
     "grid_verified_fraction",
