@@ -167,11 +167,11 @@ def grow_window(
         :class:`FusedScans` of the first K' scans given, ``K' = members.shape[1]``: the fewest of
         at least ``least_scans`` whose fusion holds ``min_instances`` instances, else all.
     """
+    everything = fuse_scans(points, labels, T_newest_scan, merge_radius)  # checks the scans first
     if least_scans < 1 or min_instances < 0:
         raise ValueError(
             f"need least_scans >= 1 and min_instances >= 0, got {least_scans}, {min_instances}"
         )
-    everything = fuse_scans(points, labels, T_newest_scan, merge_radius)
     # Scans are fused newest first and each merges only into what the newer ones built, so the
     # fusion of the first k scans holds the fused instances first seen by one of them.
     first_seen = np.argmax(everything.members >= 0, axis=1)
@@ -215,9 +215,7 @@ def localize_window(
     ``T_map_newest``; its inlier indices index the fused instances) and the fusion itself (its
     ``members.shape[1]`` scans were fused).
     """
-    if least_scans is None:
-        fused = fuse_scans(points, labels, T_newest_scan, merge_radius)
-    else:
-        fused = grow_window(points, labels, T_newest_scan, least_scans, min_instances, merge_radius)
+    least = len(points) if least_scans is None else least_scans
+    fused = grow_window(points, labels, T_newest_scan, least, min_instances, merge_radius)
     result = localize_scan(triplet_map, None, fused.points, fused.labels)
     return require_clique(result, min_clique) if fused.members.shape[1] > 1 else result, fused
