@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import jaxlie
 from jax import Array
 
-# Columns are the camera axes expressed in the body frame.
+#: ``R_body_cam`` (3, 3) float32: its columns are the camera axes (OpenCV) in the body frame.
 R_BODY_CAM = jnp.array(
     [
         [0.0, 0.0, 1.0],

@@ -35,7 +35,9 @@ import jax.numpy as jnp
 import jaxlie
 from jax import Array
 
+#: The robust losses of :class:`RobustLoss` (``RobustLoss.kind``).
 LossKind = Literal["none", "huber", "cauchy", "gnc_tls"]
+#: A residual function ``fn(T, args)`` of :func:`solve_pose` (``residual_fn``, ``prior_fn``).
 ResidualFn = Callable[[jaxlie.SE3, Any], Array]
 
 

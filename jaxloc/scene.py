@@ -22,9 +22,11 @@ from jaxloc.raycasting.bvh import build_bvh
 
 #: Triangles with an area below this (m^2) are dropped at build time (they can never be hit).
 MIN_TRIANGLE_AREA = 1e-12
+#: Default most triangles per BVH leaf (``Capacity.leaf_size``).
 DEFAULT_LEAF_SIZE = 4
 #: SAH splits up to this depth, median splits below it: bounds the tree depth.
 MEDIAN_DEPTH = 32
+#: Default traversal stack size (``Capacity.stack_size``): the BVH must be shallower than this.
 DEFAULT_STACK_SIZE = 64
 
 

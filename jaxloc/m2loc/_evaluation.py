@@ -8,8 +8,9 @@ import numpy as np
 
 from jaxloc.metrics import position_error, rotation_error_deg
 
-#: TripletLoc/M2Loc success thresholds: RTE < 7.5 m and RRE < 10 degrees.
+#: TripletLoc/M2Loc success threshold on the translation error: RTE < 7.5 m.
 SUCCESS_RTE_M = 7.5
+#: TripletLoc/M2Loc success threshold on the rotation error: RRE < 10 degrees.
 SUCCESS_RRE_DEG = 10.0
 
 

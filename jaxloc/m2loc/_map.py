@@ -41,7 +41,8 @@ class TripletMap(eqx.Module):
         config: the configuration the descriptors were built with.
         grid: the vertices sorted into XY cells of side ``config.verify_radius`` for the
             hypotheses' verification (:func:`map_grid`; :func:`build_map` and
-            :func:`load_triplet_map` build it; None: built inside each query, ~2 ms on DCC04).
+            :func:`~jaxloc.io.load_triplet_map` build it; None: built inside each query, ~2 ms
+            on DCC04).
             Rebuild it if you replace ``points`` or ``classes``.
     """
 

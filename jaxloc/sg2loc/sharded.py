@@ -51,7 +51,7 @@ def sharded_step(
     """:func:`jaxloc.sg2loc.filter.step` with the particle state split over ``mesh`` in and out.
 
     Pass a state from :func:`shard_particles`; ``frame``, ``scene`` and ``config`` may be host
-    arrays or :func:`replicate` d ones.
+    arrays or replicated ones (:func:`~jaxloc.sharding.replicate`).
     """
     config = dataclasses.replace(config, mesh=mesh)
     state, info = step(key, pin_split(state, mesh), frame, scene, config)

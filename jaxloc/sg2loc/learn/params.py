@@ -16,7 +16,9 @@ from jaxloc.sg2loc.scores import (
 #: The logs of the parameters are clipped to +-LOG_BOUND in :meth:`LikelihoodParams.to_config`.
 LOG_BOUND = 15.0
 
+#: The losses of :class:`LossConfig` (``LossConfig.kind``).
 LOSS_KINDS = ("nll", "expected_error")
+#: The frames the loss is taken at (``LossConfig.frames``): the last one or every one.
 LOSS_FRAMES = ("last", "every")
 
 

@@ -23,9 +23,9 @@ from jaxloc.sg2loc.scores import (
 )
 from jaxloc.sg2loc.sequence import Sequence
 
-#: Half-width (metres) and yaw half-range (radians) of the box around a window's first true pose
-#: that the local half of its particles is drawn from (:mod:`jaxloc.sg2loc.learn`).
+#: Half-width (metres) of the box around a window's first true pose of its local particles.
 LOCAL_HALF_WIDTH = 0.4
+#: Yaw half-range (radians, 20 degrees) about a window's first true yaw of its local particles.
 LOCAL_YAW_HALF_RANGE = float(np.deg2rad(20.0))
 
 

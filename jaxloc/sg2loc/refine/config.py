@@ -12,19 +12,29 @@ from jax import Array
 from jaxloc.lsq import RobustLoss
 from jaxloc.raycasting.engines import check_engine_name
 
+#: The residuals of a refinement (``RefineConfig.residuals``): depth (a), reprojection (b), both.
 ResidualKind = Literal["depth", "reprojection", "both"]
+#: The frames a refinement uses (``RefineConfig.mode``): the last one or the whole sequence.
 Mode = Literal["last", "sequence"]
 
+#: ``RefineResult.status``: converged (the result is ok).
 STATUS_CONVERGED = 0
+#: ``RefineResult.status``: not converged (step budget spent or a non-finite iterate).
 STATUS_NOT_CONVERGED = 1
+#: ``RefineResult.status``: non-finite or empty input.
 STATUS_BAD_INPUT = 2
+#: ``RefineResult.status``: too few valid residuals at the initial pose.
 STATUS_TOO_FEW_RESIDUALS = 3
+#: ``RefineResult.status``: moved farther than ``max_translation`` / ``max_rotation``.
 STATUS_DIVERGED = 4
+#: ``RefineResult.status``: the data leave the pose undetermined along some direction.
 STATUS_DEGENERATE = 5
+#: ``RefineResult.status``: the solved pose explains too few of the observations.
 STATUS_POOR_FIT = 6
 
-#: A round that moves the pose less than this (metres, radians) ends the association rounds.
+#: Rounds end after one that moves the pose < this (metres) and turns it < SETTLED_ROTATION.
 SETTLED_TRANSLATION = 1e-4
+#: Rounds end after one that turns the pose < this (radians) and moves it < SETTLED_TRANSLATION.
 SETTLED_ROTATION = 1e-4
 
 

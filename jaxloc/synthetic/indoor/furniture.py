@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+#: Class names of the structure objects, the first entries of :data:`CLASS_NAMES`.
 STRUCTURE_CLASSES = ("floor", "ceiling", "wall")
 
 
@@ -69,9 +70,13 @@ def _jitter(rng: np.random.Generator, color, spread=0.08) -> np.ndarray:
     return np.clip(np.asarray(color) + rng.uniform(-spread, spread, 3), 0.05, 0.95)
 
 
+#: Wood base colours (RGB in [0, 1]); :func:`pick` draws one of a palette and jitters it +-0.08.
 WOOD = ((0.55, 0.38, 0.22), (0.72, 0.55, 0.35), (0.40, 0.26, 0.15), (0.85, 0.75, 0.60))
+#: Fabric base colours (RGB in [0, 1]).
 FABRIC = ((0.30, 0.35, 0.55), (0.60, 0.25, 0.25), (0.45, 0.55, 0.40), (0.70, 0.65, 0.55))
+#: Painted-surface base colours (RGB in [0, 1]).
 PAINT = ((0.90, 0.90, 0.88), (0.25, 0.25, 0.28), (0.75, 0.80, 0.85), (0.55, 0.60, 0.50))
+#: Metal base colours (RGB in [0, 1]).
 METAL = ((0.60, 0.60, 0.62), (0.20, 0.20, 0.22), (0.80, 0.78, 0.72))
 
 
@@ -291,6 +296,7 @@ def _stool(rng, w, d, h):
     ]
 
 
+#: The furniture classes, in class order: each one's :class:`ClassSpec` and its parts' builder.
 FURNITURE: tuple[tuple[ClassSpec, Callable], ...] = (
     (
         ClassSpec("bed", "floor_wall", (1.4, 1.9, 0.9), (1.8, 2.1, 1.1), weight=0.5, max_count=2),
@@ -369,4 +375,5 @@ FURNITURE: tuple[tuple[ClassSpec, Callable], ...] = (
     (ClassSpec("stool", "floor", (0.3, 0.3, 0.45), (0.4, 0.4, 0.75), weight=0.8), _stool),
 )
 
+#: Every class name, indexed by class id: :data:`STRUCTURE_CLASSES`, then the furniture classes.
 CLASS_NAMES: tuple[str, ...] = STRUCTURE_CLASSES + tuple(spec.name for spec, _ in FURNITURE)

@@ -14,8 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-WALL_GAP = 0.01  # metres between a wall and the back of an object standing or hung against it
-TOLERANCE = 0.02  # metres of footprint overlap still accepted (touching objects)
+#: Metres between a wall and the back of an object standing or hung against it.
+WALL_GAP = 0.01
+#: Metres of overlap of two objects' boxes still accepted (touching objects do not collide).
+TOLERANCE = 0.02
 
 
 @dataclass(frozen=True)

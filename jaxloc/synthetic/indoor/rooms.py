@@ -21,7 +21,8 @@ from jaxloc.synthetic.indoor.furniture import CLASS_NAMES, FURNITURE, STRUCTURE_
 from jaxloc.synthetic.indoor.meshes import build_furniture, build_structure
 from jaxloc.synthetic.indoor.trajectory import FreeSpace, sample_trajectory
 
-NUM_STRUCTURE = 6  # floor, ceiling, 4 walls: the first objects of every room
+#: Structure objects of every room, its first objects: floor, ceiling and 4 walls.
+NUM_STRUCTURE = 6
 _CLASS_STREAM = 0xC1A55  # keeps the class vectors' stream apart from any room's seed
 
 

@@ -17,9 +17,12 @@ from scipy import ndimage
 
 from jaxloc.synthetic.indoor.layout import Placement
 
-CELL = 0.05  # metres per free-space cell
-HEADING_SMOOTHING = 1.5  # frames (Gaussian sigma): spreads sharp turns of the path over frames
-LOOKAHEAD = 0.5  # metres along the path either side of a frame that define its travel direction
+#: Side of a cell of the free-space grid of camera positions (metres).
+CELL = 0.05
+#: Gaussian sigma (frames) of the heading smoothing: spreads sharp turns of the path over frames.
+HEADING_SMOOTHING = 1.5
+#: Metres along the path either side of a frame that define its travel direction.
+LOOKAHEAD = 0.5
 
 
 class FreeSpace:
