@@ -46,7 +46,9 @@ def rotation_world_cam(yaw: Array, tilt: Array | None = None) -> Array:
         r_world_body = (
             r_world_body @ jaxlie.SO3.from_y_radians(tilt[0]) @ jaxlie.SO3.from_x_radians(tilt[1])
         )
-    return r_world_body.as_matrix() @ R_BODY_CAM.astype(r_world_body.wxyz.dtype)
+    return jnp.matmul(
+        r_world_body.as_matrix(), R_BODY_CAM.astype(r_world_body.wxyz.dtype), precision="highest"
+    )
 
 
 def yaw_pose_to_se3(pose: Array, tilt: Array | None = None) -> jaxlie.SE3:
@@ -102,4 +104,4 @@ def uncompose_yaw(pose_b: Array, delta: Array) -> Array:
 
 def transform_points(T: jaxlie.SE3, points: Array) -> Array:
     """Apply a rigid transform to points (..., 3)."""
-    return points @ T.rotation().as_matrix().T + T.translation()
+    return jnp.matmul(points, T.rotation().as_matrix().T, precision="highest") + T.translation()

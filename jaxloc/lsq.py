@@ -145,11 +145,11 @@ def _stationary(residuals: Callable[[Array], Array], delta: Array, rtol: float =
     """
     r, jac = residuals(delta), jax.jacfwd(residuals)(delta)
     cost = 0.5 * jnp.sum(r * r)
-    gradient = jac.T @ r
-    hessian = jac.T @ jac
+    gradient = jnp.matmul(jac.T, r, precision="highest")
+    hessian = jnp.matmul(jac.T, jac, precision="highest")
     damping = 1e-9 * (jnp.trace(hessian) + 1.0)
     step = jnp.linalg.solve(hessian + damping * jnp.eye(6, dtype=hessian.dtype), gradient)
-    decrement = 0.5 * jnp.dot(gradient, step)
+    decrement = 0.5 * jnp.dot(gradient, step, precision="highest")
     return jnp.isfinite(decrement) & (decrement <= rtol * (cost + 1.0))
 
 
@@ -157,6 +157,9 @@ def _finite_pose(T: jaxlie.SE3) -> Array:
     return jnp.all(jnp.isfinite(T.parameters()))
 
 
+# Full float32 products in jaxlie's and the optimiser's linear algebra too: XLA runs float32
+# products of DEFAULT precision as TF32 on NVIDIA GPUs (tests/test_precision.py).
+@jax.default_matmul_precision("highest")
 def solve_pose(
     residual_fn: ResidualFn,
     T_init: jaxlie.SE3,

@@ -87,7 +87,7 @@ def grid_verified_fraction(
     Returns:
         float32 scalar in [0, 1].
     """
-    moved = points @ T_map_scan[:3, :3].T + T_map_scan[:3, 3]
+    moved = jnp.matmul(points, T_map_scan[:3, :3].T, precision="highest") + T_map_scan[:3, 3]
     index = jnp.floor((moved[:, :2] - grid.low) / grid.cell).astype(jnp.int32)
     offsets = jnp.array([(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)], jnp.int32)
     cells = jnp.clip(index[:, None, :] + offsets[None], 0, grid.columns - 1)  # (Nq, 9, 2)
@@ -123,18 +123,18 @@ def closed_form_poses(masks: Array, query_xyz: Array, map_xyz: Array) -> Array:
         ],
         axis=1,
     )
-    sums = weights @ moments  # (N, 16)
+    sums = jnp.matmul(weights, moments, precision="highest")  # (N, 16)
     count = jnp.maximum(sums[:, :1], 1.0)
     mean_query, mean_map = sums[:, 1:4] / count, sums[:, 4:7] / count
     covariance = (sums[:, 7:] / count).reshape(-1, 3, 3) - mean_map[:, :, None] * mean_query[
         :, None, :
     ]
     u, _, vt = jnp.linalg.svd(covariance)
-    sign = jnp.sign(jnp.linalg.det(u @ vt))
+    sign = jnp.sign(jnp.linalg.det(jnp.matmul(u, vt, precision="highest")))
     sign = jnp.where(sign == 0, 1.0, sign)
     u = u.at[:, :, 2].multiply(sign[:, None])
-    rotation = u @ vt
-    translation = mean_map - jnp.einsum("nij,nj->ni", rotation, mean_query)
+    rotation = jnp.matmul(u, vt, precision="highest")
+    translation = mean_map - jnp.einsum("nij,nj->ni", rotation, mean_query, precision="highest")
     poses = jnp.zeros((masks.shape[0], 4, 4), query_xyz.dtype).at[:, 3, 3].set(1.0)
     poses = poses.at[:, :3, :3].set(rotation).at[:, :3, 3].set(translation)
     usable = (sums[:, 0] >= 3) & jnp.all(jnp.isfinite(poses), axis=(1, 2))

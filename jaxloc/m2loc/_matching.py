@@ -28,7 +28,7 @@ def match_descriptors(
         ``map_index (Nq, k) int32`` (-1 where no valid match) and ``distance (Nq, k) float32``
         (inf where no valid match), nearest first.
     """
-    similarity = query_descriptors @ map_descriptors.T
+    similarity = jnp.matmul(query_descriptors, map_descriptors.T, precision="highest")
     squared = jnp.maximum(2.0 - 2.0 * similarity, 0.0)
     allowed = (
         query_valid[:, None] & map_valid[None, :] & (query_classes[:, None] == map_classes[None, :])

@@ -105,7 +105,7 @@ def verified_fraction(
         float32 scalar in [0, 1]: ``(verified - discount) / (real - discount)``, clipped at 0
         (0 for no more than ``discount`` real vertices).
     """
-    moved = points @ T_map_scan[:3, :3].T + T_map_scan[:3, 3]
+    moved = jnp.matmul(points, T_map_scan[:3, :3].T, precision="highest") + T_map_scan[:3, 3]
     # (Nm, Nq) layout: XLA:CPU reduces the leading axis fastest
     squared = sum((map_points[:, None, c] - moved[None, :, c]) ** 2 for c in range(3))
     squared = jnp.where(map_classes[:, None] == classes[None, :], squared, jnp.inf)
@@ -274,7 +274,7 @@ def register_query(
         # the scale the previous attempt ended at: with fewer associations, the cliques of the
         # smaller scales can only be smaller, so the enhancement would pass them again.
         def disagrees(matrix):
-            moved = query_xyz @ matrix[:3, :3].T + matrix[:3, 3]
+            moved = jnp.matmul(query_xyz, matrix[:3, :3].T, precision="highest") + matrix[:3, 3]
             return jnp.sum((moved - map_xyz) ** 2, axis=-1) > config.verify_radius**2
 
         def retry(state):
@@ -369,7 +369,7 @@ def register_query(
         _, poses, fractions = checked
 
         def moved(T):
-            return points @ T[:3, :3].T + T[:3, 3]
+            return jnp.matmul(points, T[:3, :3].T, precision="highest") + T[:3, 3]
 
         real = mask.astype(jnp.float32)
         here = moved(matrix)

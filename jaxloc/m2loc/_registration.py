@@ -28,12 +28,15 @@ def weighted_kabsch(source: Array, target: Array, weights: Array) -> tuple[jaxli
     safe_total = jnp.where(total > 0, total, 1.0)
     mean_source = jnp.sum(weights[:, None] * source, axis=0) / safe_total
     mean_target = jnp.sum(weights[:, None] * target, axis=0) / safe_total
-    covariance = ((target - mean_target) * weights[:, None]).T @ (source - mean_source)
+    covariance = jnp.matmul(
+        ((target - mean_target) * weights[:, None]).T, source - mean_source, precision="highest"
+    )
     u, _, vt = jnp.linalg.svd(covariance)
-    sign = jnp.sign(jnp.linalg.det(u @ vt))
+    sign = jnp.sign(jnp.linalg.det(jnp.matmul(u, vt, precision="highest")))
     sign = jnp.where(sign == 0, 1.0, sign)
-    rotation = u @ jnp.diag(jnp.array([1.0, 1.0, 1.0], source.dtype).at[2].set(sign)) @ vt
-    translation = mean_target - rotation @ mean_source
+    flip = jnp.array([1.0, 1.0, 1.0], source.dtype).at[2].set(sign)
+    rotation = jnp.matmul(u * flip, vt, precision="highest")
+    translation = mean_target - jnp.matmul(rotation, mean_source, precision="highest")
     ok = (
         (jnp.sum(weights > 0) >= 3)
         & jnp.all(jnp.isfinite(rotation))

@@ -225,7 +225,7 @@ def _local_pose(tracker: Tracker, scan: PaddedScan, T_pred: Array, grid: MapGrid
     count = jnp.int32(0)
     for radius in (tracker.config.association_radius, config.verify_radius):
         matrix = T.as_matrix()
-        moved = scan.points @ matrix[:3, :3].T + matrix[:3, 3]
+        moved = jnp.matmul(scan.points, matrix[:3, :3].T, precision="highest") + matrix[:3, 3]
         targets, found = grid_nearest_same_class(moved, scan.classes, scan.mask, grid, radius)
         solution = solve_pose(
             point_residuals,
@@ -262,7 +262,7 @@ def _poses_agree(T_a: Array, T_b: Array, config: TrackConfig) -> Array:
     """Whether two (4, 4) poses agree: positions within ``association_radius`` and rotations
     within ``confirm_angle_deg`` (float32; NaN-safe: non-finite poses never agree)."""
     gap = jnp.sum((T_a[:3, 3] - T_b[:3, 3]) ** 2)
-    cosine = (jnp.trace(T_a[:3, :3].T @ T_b[:3, :3]) - 1.0) / 2.0
+    cosine = (jnp.trace(jnp.matmul(T_a[:3, :3].T, T_b[:3, :3], precision="highest")) - 1.0) / 2.0
     return (gap <= config.association_radius**2) & (
         cosine >= math.cos(math.radians(config.confirm_angle_deg))
     )
@@ -284,7 +284,7 @@ def _track_step(
 ) -> tuple[TrackState, TrackResult]:
     TRACE_COUNTS["track_step"] += 1
     triplet_map, config = tracker.triplet_map, tracker.triplet_map.config
-    T_pred = state.T_map_scan @ odometry
+    T_pred = jnp.matmul(state.T_map_scan, odometry, precision="highest")
     finite = jnp.all(jnp.isfinite(T_pred))
     T_pred = jnp.where(finite, T_pred, jnp.eye(4, dtype=jnp.float32))
     recent = finite & (state.since_fix <= tracker.config.max_coast)

@@ -368,8 +368,11 @@ def weighted_mean(state: ParticleState) -> Array:
     _check_state(state)
     weights, _ = normalized_weights(state.log_weights, state.active)
     safe_poses = jnp.where(state.active[:, None], state.poses, 0.0)
-    position = weights @ safe_poses[:, :3]
-    yaw = jnp.arctan2(weights @ jnp.sin(safe_poses[:, 3]), weights @ jnp.cos(safe_poses[:, 3]))
+    position = jnp.matmul(weights, safe_poses[:, :3], precision="highest")
+    sin, cos = jnp.sin(safe_poses[:, 3]), jnp.cos(safe_poses[:, 3])
+    yaw = jnp.arctan2(
+        jnp.dot(weights, sin, precision="highest"), jnp.dot(weights, cos, precision="highest")
+    )
     return jnp.concatenate([position, wrap_angle(yaw)[None]])
 
 

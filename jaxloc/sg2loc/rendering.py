@@ -73,7 +73,7 @@ def _world_rays(pose: Array, camera: Camera, grid: RayGrid, tilt: Array | None):
     """Unit directions in the camera frame (R, 3) and world frame (R, 3) of one view."""
     d_cam = camera.directions(grid.uv)
     R_world_cam = rotation_world_cam(pose[3], tilt)
-    return d_cam, d_cam @ R_world_cam.T
+    return d_cam, jnp.matmul(d_cam, R_world_cam.T, precision="highest")
 
 
 def _views(scene: SceneGraph, hit: RayHit, d_cam: Array, grid: RayGrid) -> Render:
@@ -178,7 +178,8 @@ def render_batch(
     )
     order = _tile_order(grid, engine)
     num_rays = grid.uv.shape[0]
-    d_world = jnp.einsum("nij,rj->nri", rotations, d_cam if order is None else d_cam[order])
+    rays = d_cam if order is None else d_cam[order]
+    d_world = jnp.einsum("nij,rj->nri", rotations, rays, precision="highest")
     if order is None:  # cast in the grid's own order, nothing to permute
         origins = jnp.broadcast_to(poses[:, None, :3], d_world.shape)
         hits = raycast(scene, origins, d_world, engine=engine, differentiable=differentiable)

@@ -204,7 +204,7 @@ def _frame_scene_score(
     Returns:
         () float32, 0 for a frame without valid patches or a scene without valid objects.
     """
-    cosine = patch_units @ objects.T  # (P, O)
+    cosine = jnp.matmul(patch_units, objects.T, precision="highest")  # (P, O)
     best = jnp.max(jnp.where(object_valid[None, :], cosine, -jnp.inf), axis=1)
     best = jnp.where(patch_valid & jnp.any(object_valid), best, 0.0)
     return jnp.sum(best) / jnp.maximum(jnp.sum(patch_valid), 1)

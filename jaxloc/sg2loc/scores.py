@@ -100,7 +100,9 @@ def match_patches(
     objects, object_ok = unit(object_embeddings.astype(jnp.float32))
     object_ok = object_ok & jnp.asarray(object_valid, bool)
     usable = patch_ok[:, None] & object_ok[None, :]
-    cosines = jnp.where(usable, jnp.clip(patches @ objects.T, -1.0, 1.0), -1.0)
+    cosines = jnp.where(
+        usable, jnp.clip(jnp.matmul(patches, objects.T, precision="highest"), -1.0, 1.0), -1.0
+    )
     best = jnp.argmax(jnp.where(usable, cosines, -jnp.inf), axis=-1).astype(jnp.int32)
     predicted = jnp.where(jnp.any(usable, axis=-1), best, -1)
     return PatchMatch(cosines, predicted)

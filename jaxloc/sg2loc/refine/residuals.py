@@ -82,7 +82,7 @@ def associate_depth(
     candidates = uv[:, None, :] + offsets[None, :, :]  # (N, K, 2)
     rotation = T_world_cam.rotation().as_matrix()
     origin = T_world_cam.translation()
-    rays = camera.directions(candidates) @ rotation.T
+    rays = jnp.matmul(camera.directions(candidates), rotation.T, precision="highest")
     hit = raycast(scene, origin, rays, engine=engine)
     normal, corner, plane_ok = _triangle_planes(scene, hit.triangle_id)
     incidence = jnp.abs(jnp.sum(normal * rays, axis=-1))

@@ -114,7 +114,7 @@ def _pose_std(blocks_fn, T: jaxlie.SE3, loss: RobustLoss) -> tuple[Array, Array]
     )  # (K, D, 6)
     weight = robust_block_scale(jnp.sum(blocks * blocks, axis=-1), loss) ** 2
     jacobian = jnp.where(jnp.isfinite(jacobian), jacobian, 0.0).reshape(-1, blocks.shape[-1], 6)
-    information = jnp.einsum("k,kdi,kdj->ij", weight, jacobian, jacobian)
+    information = jnp.einsum("k,kdi,kdj->ij", weight, jacobian, jacobian, precision="highest")
     eigenvalues, vectors = jnp.linalg.eigh(information)
     # Eigenvalues below float32 rounding of the largest carry no information.
     floor = 1e-6 * jnp.maximum(eigenvalues[-1], 0.0)
@@ -124,7 +124,12 @@ def _pose_std(blocks_fn, T: jaxlie.SE3, loss: RobustLoss) -> tuple[Array, Array]
 
     def worst(rows: slice) -> Array:
         part = vectors[rows]  # (3, 6): this block's share of each eigenvector
-        std = jnp.sqrt(jnp.maximum(jnp.linalg.eigvalsh((part * inverse) @ part.T)[-1], 0.0))
+        std = jnp.sqrt(
+            jnp.maximum(
+                jnp.linalg.eigvalsh(jnp.matmul(part * inverse, part.T, precision="highest"))[-1],
+                0.0,
+            )
+        )
         free = jnp.any(~determined & (jnp.linalg.norm(part, axis=0) > 1e-3))
         return jnp.where(free | ~finite, jnp.inf, std)
 
