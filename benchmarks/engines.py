@@ -60,17 +60,17 @@ def compiled_call(fn, args):
     return compile_s, call
 
 
-def run_grid(scene, peer, poses, camera, grid, engines, repeats):
+def run_grid(scene, peer, poses, camera, grid, names, repeats):
     """Every row of one ray set, timed round-robin (``repeats`` rounds, best of each row), so no
     row is favoured by running first or last."""
     origins, directions = world_rays(poses, camera, grid)
     rows = [{"what": "embreex EmbreeScene.run, 1 thread (peer)", "call": None}]
     rows[0]["call"] = lambda: peer.run(origins, directions)
-    for engine in engines:
+    for engine in names:
         cast = functools.partial(jaxloc.raycast, engine=engine)
         compile_s, call = compiled_call(cast, (scene, origins, directions))
         rows.append({"what": f"raycast, engine={engine}", "compile": compile_s, "call": call})
-    for engine in engines:
+    for engine in names:
         render = functools.partial(jaxloc.render_batch, engine=engine)
         compile_s, call = compiled_call(render, (scene, poses, camera, grid))
         rows.append({"what": f"render_batch, engine={engine}", "compile": compile_s, "call": call})
@@ -102,7 +102,7 @@ def main(argv=None) -> None:
     from embreex import rtcore_scene
     from embreex.mesh_construction import TriangleMesh
 
-    engines = (
+    names = (
         args.engines.split(",")
         if args.engines
         else ["auto", "jax"] + [e for e in ("embree", "warp") if engines.is_installed(e)]
@@ -140,7 +140,7 @@ def main(argv=None) -> None:
     )
     print("|---|---|---|---|---|---|---|---|")
     for name in args.grids.split(","):
-        num_rays, rows = run_grid(scene, peer, poses, camera, grids[name], engines, args.repeats)
+        num_rays, rows = run_grid(scene, peer, poses, camera, grids[name], names, args.repeats)
         label = f"{name}: {args.poses} x {num_rays // args.poses} = {num_rays}"
         for row in rows:
             compile_s = f"{row['compile']:.1f}" if "compile" in row else "-"
