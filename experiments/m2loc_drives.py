@@ -25,6 +25,7 @@ query), so it compiles once per map.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 import subprocess
@@ -32,25 +33,28 @@ import sys
 import time
 from pathlib import Path
 
-import jax
+import equinox as eqx
 import numpy as np
 from _atomic import write_text_atomic
 
 from jaxloc.io import load_instance_map, load_road_normals
 from jaxloc.m2loc import (
+    SUCCESS_RRE_DEG,
+    SUCCESS_RTE_M,
     TRACKED,
     WINDOW_MIN_CLIQUE,
     WINDOW_MIN_INSTANCES,
+    DriveConfig,
     TrackConfig,
-    Tracker,
+    TripletConfig,
     build_map,
-    grow_window,
+    drive_window,
     localization_errors,
+    localize_drive,
     localize_scan,
     m2loc_config,
-    pad_scan,
+    query_capacity,
     require_clique,
-    track_step,
     tripletloc_config,
 )
 from jaxloc.synthetic.outdoor import make_drive, make_outdoor_world
@@ -63,7 +67,6 @@ SINGLE = {
     "M2Loc (paper)": lambda capacity: m2loc_config(3, robust=False, query_capacity=capacity),
     "M2Loc robust": lambda capacity: m2loc_config(3, query_capacity=capacity),
 }
-SUCCESS_RTE_M, SUCCESS_RRE_DEG = 7.5, 10.0
 COUNTS = ("wrong", "false")  # integer statistics
 
 
@@ -78,7 +81,8 @@ def maps():
 
 
 def band(size: int) -> int:
-    return max(32, 1 << (size - 1).bit_length())
+    """The query capacity band of a query of ``size`` vertices (``query_capacity``)."""
+    return query_capacity(max(size, 1), TripletConfig())
 
 
 def odometry_chain(drive, rng, sigma_m, sigma_deg) -> np.ndarray:
@@ -97,16 +101,10 @@ def odometry_chain(drive, rng, sigma_m, sigma_deg) -> np.ndarray:
 def fused_query(drive, chain, end: int, k: int, most: int | None = None, min_instances: int = 0):
     """Points, labels and scans fused of the window of scan ``end``: its last ``k`` scans, grown
     with older ones up to ``most`` (default ``k``) while it holds fewer than ``min_instances``
-    fused instances (``grow_window``, as ``localize-lidar --accumulate k`` does)."""
-    window = range(end, max(end - (most or k), -1), -1)  # newest first
-    newest = np.linalg.inv(chain[end])
-    fused = grow_window(
-        [drive[j].points for j in window],
-        [drive[j].labels for j in window],
-        np.stack([newest @ chain[j] for j in window]),
-        k,
-        min_instances,
-    )
+    fused instances (``jaxloc.m2loc.drive_window``, as ``localize_drive`` and ``localize-lidar
+    --accumulate k`` do)."""
+    points, labels = [s.points for s in drive], [s.labels for s in drive]
+    fused = drive_window(points, labels, chain, end, k, most, min_instances)
     return fused.points, fused.labels, fused.members.shape[1]
 
 
@@ -147,20 +145,18 @@ def run_one_shot(
     return stats, seconds
 
 
-def run_tracker(tracker, queries_per_drive, capacity, chains) -> tuple[list, list]:
-    """The tracker over each drive: per drive a list of (pose, valid, mode); step seconds."""
-    config = tracker.triplet_map.config
-    runs, seconds = [], []
-    for queries, chain in zip(queries_per_drive, chains, strict=True):
-        state, steps = tracker.init(), []
-        for i, query in enumerate(queries):
-            odometry = np.linalg.inv(chain[i - 1]) @ chain[i] if i else np.eye(4)
-            padded = pad_scan(*query[:2], config, capacity)
-            start = time.perf_counter()
-            state, out = jax.block_until_ready(track_step(tracker, state, padded, odometry))
-            seconds.append((time.perf_counter() - start, int(out.mode)))
-            steps.append((np.asarray(out.T_map_scan, np.float64), bool(out.valid), int(out.mode)))
-        runs.append(steps)
+def run_tracker(triplet_map, drives, chains, k: int, config: DriveConfig) -> tuple[list, list]:
+    """``localize_drive`` tracking each drive with windows of ``k`` scans (``config``: their
+    growth and the tracker): per drive its ``DriveResult``; every step's (seconds, mode)."""
+    runs = [
+        localize_drive(triplet_map, d, odometry=c, accumulate=k, track=True, config=config)
+        for d, c in zip(drives, chains, strict=True)
+    ]
+    seconds = [
+        (1e-3 * ms, int(mode))
+        for run in runs
+        for ms, mode in zip(run.localize_ms, run.status, strict=True)
+    ]
     return runs, seconds
 
 
@@ -300,35 +296,44 @@ def rows_of_map(args, only: str) -> list:
             track_configs.append((", no confirmation", TrackConfig(confirm=False)))
         for k, (suffix, track_config) in itertools.product(args.track_windows, track_configs):
             most, instances = (2 * k, args.window_instances) if k > 1 else (1, 0)
-            per_drive = {
+            config = DriveConfig(most_scans=most, min_instances=instances, track=track_config)
+            sizes = {
                 which: [
-                    [fused_query(d, c, i, k, most, instances) for i in range(len(d))]
+                    len(d[i].points) if k == 1 else len(fused_query(d, c, i, k, most, instances)[0])
                     for d, c in zip(drives[which], chains[which], strict=True)
+                    for i in range(len(d))
                 ]
                 for which in (name, other)
             }
-            size = band(max(len(q[0]) for runs in per_drive.values() for r in runs for q in r))
-            # the step runs at the padded scan's size, whatever the map's query capacity
-            tracker = Tracker(robust[capacity[single]], track_config)
-            run_tracker(tracker, per_drive[name][:1], size, chains[name][:1])  # compile
-            runs, seconds = run_tracker(tracker, per_drive[name], size, chains[name])
-            judged_last = [judge(*run[-1][:2], t) for run, t in zip(runs, truths, strict=True)]
+            # every step at the band of the largest query (one compilation per map)
+            size = band(max(sizes[name] + sizes[other]))
+            tracker_map = robust[capacity[single]]
+            tracker_map = eqx.tree_at(
+                lambda m: m.config,
+                tracker_map,
+                dataclasses.replace(tracker_map.config, query_capacity=size),
+            )
+            runs, seconds = run_tracker(tracker_map, own, chains[name], k, config)
+            judged_last = [
+                judge(run.poses[-1], bool(run.valid[-1]), t)
+                for run, t in zip(runs, truths, strict=True)
+            ]
             stats = stats_of(judged_last, len(runs))
             every_scan = [
-                judge(pose, valid, scan.T_map_scan)
+                judge(pose, bool(valid), scan.T_map_scan)
                 for run, d in zip(runs, own, strict=True)
-                for (pose, valid, _), scan in zip(run, d, strict=True)
+                for pose, valid, scan in zip(run.poses, run.valid, d, strict=True)
             ]
             stats["wrong"] = int(sum(wrong for _, wrong, *_ in every_scan))
             stats["right_share"] = sum(ok for ok, *_ in every_scan) / len(every_scan)
-            foreign_runs, _ = run_tracker(tracker, per_drive[other], size, chains[other])
-            stats["false"] = int(sum(any(valid for _, valid, _ in run) for run in foreign_runs))
+            foreign_runs, _ = run_tracker(tracker_map, foreign, chains[other], k, config)
+            stats["false"] = int(sum(bool(run.valid.any()) for run in foreign_runs))
             tracked = [s for s, mode in seconds if mode == TRACKED]
             stats["tracked_ms"] = 1e3 * np.median(tracked) if tracked else np.nan
             stats["tracked_share"] = len(tracked) / len(seconds)
             mean = float(np.mean([s for s, _ in seconds]))
             label = "--track" + (f" --accumulate {k}" if k > 1 else "") + suffix
-            median_size = np.median([len(q[0]) for r in per_drive[name] for q in r])
+            median_size = np.median(sizes[name])
             rows.append((name, f"M2Loc robust, {label}", stats, mean, float(median_size), size))
             print(rows[-1], file=sys.stderr, flush=True)
     return rows

@@ -315,38 +315,6 @@ def test_helipr_notes_and_bad_inputs(scans, helipr_dir, tmp_path, capsys):
         assert not (tmp_path / "x").exists(), name
 
 
-def test_poses_out_leaves_invalid_scans_out_of_tum_only(tmp_path, capsys):
-    """TUM: valid scans, stamped with their time or else their scan number; KITTI: every scan in
-    order, a failed one with the identity jaxloc returns for it."""
-    from argparse import Namespace
-    from collections import namedtuple
-
-    from evo.tools.file_interface import read_kitti_poses_file, read_tum_trajectory_file
-
-    from jaxloc.cli._lidar_scans import ScanRef, write_poses_out
-
-    result = namedtuple("Result", "pose valid")
-    moved = np.eye(4)
-    moved[:3, 3] = [1.0, 2.0, 3.0]
-    results = [result(moved, True), result(np.eye(4), False), result(moved, True)]
-    numbered = [ScanRef(Path(name), number) for name, number in (("a", 0), ("b", 5), ("c", 10))]
-    args = Namespace(poses_out=tmp_path / "n.tum", pose_format="tum", command="localize-lidar")
-    write_poses_out(args, numbered, results)
-    assert "1 scan(s) that did not localize left out" in capsys.readouterr().err
-    trajectory = read_tum_trajectory_file(str(tmp_path / "n.tum"))
-    np.testing.assert_array_equal(trajectory.timestamps, [0.0, 10.0])
-    np.testing.assert_array_equal(trajectory.positions_xyz, [[1, 2, 3], [1, 2, 3]])
-    timed = [ref._replace(timestamp=FIRST_STAMP + ref.number) for ref in numbered]
-    args.poses_out = tmp_path / "t.tum"
-    write_poses_out(args, timed, results)
-    first = (tmp_path / "t.tum").read_text().splitlines()[0].split(" ")[0]
-    assert first == "1691900000.123456789"
-    args = Namespace(poses_out=tmp_path / "k.txt", pose_format="kitti", command="localize-lidar")
-    write_poses_out(args, numbered, results)
-    kitti = read_kitti_poses_file(str(tmp_path / "k.txt"))
-    np.testing.assert_array_equal(np.asarray(kitti.poses_se3), [moved, np.eye(4), moved])
-
-
 def test_accumulate_fuses_the_last_scans_through_odometry(built, sequence_dir, tmp_path, capsys):
     """--accumulate 3 localizes each scan with the two before it (odometry: the sequence's poses,
     or the same poses from --odometry, with the same results), and with older ones while the

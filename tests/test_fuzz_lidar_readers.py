@@ -5,9 +5,9 @@ allowed out are ``ValueError`` (or a subclass, such as ``MapFormatError``) and
 
 Formats: SemanticKITTI scans (``.bin`` + ``.label``) and sequences (``poses.txt``, ``calib.txt``,
 ``times.txt``), HeLiPR scans of every sensor, SPVNAS labels and GT files (and a HeLiPR sequence
-read scan by scan), pose files (KITTI, 4x4, TUM), instance maps and road normals, the command
-line's centroid scan files, and the described map's ``.npz``. Few examples each, no deadline: a
-few seconds in all.
+read scan by scan), pose files (KITTI, 4x4, TUM), instance maps and road normals, centroid scan
+files (:func:`jaxloc.io.load_centroid_scan`), and the described map's ``.npz``. Few examples each,
+no deadline: a few seconds in all.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from _helipr_fixtures import FIRST_STAMP, pack_labels, pack_records, tum_line
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from jaxloc.cli._lidar_scans import load_centroid_scan
 from jaxloc.io import (
+    load_centroid_scan,
     load_instance_map,
     load_lidar_sequence,
     load_road_normals,

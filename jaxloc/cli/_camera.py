@@ -132,9 +132,7 @@ def _config(args: argparse.Namespace):
 
 
 def _refine_last(scene, folder, result) -> dict:
-    import jax.numpy as jnp
-
-    from jaxloc.geometry import yaw_pose_to_se3
+    from jaxloc.io import camera_pose_matrices
     from jaxloc.metrics import position_error, rotation_error_deg
     from jaxloc.sg2loc.refine import refine
 
@@ -142,52 +140,31 @@ def _refine_last(scene, folder, result) -> dict:
     T = np.asarray(refined.pose.as_matrix(), np.float64)
     out = {"ok": bool(refined.ok), "status": int(refined.status), "T_world_cam": T.tolist()}
     if folder.poses_gt is not None:
-        gt = yaw_pose_to_se3(jnp.asarray(folder.poses_gt[-1]), jnp.asarray(folder.tilt_gt[-1]))
-        T_gt = np.asarray(gt.as_matrix(), np.float64)
+        T_gt = camera_pose_matrices(folder.poses_gt[-1:], folder.tilt_gt[-1:])[0]
         out["position_error_m"] = float(position_error(T[:3, 3], T_gt[:3, 3]))
         out["rotation_error_deg"] = float(rotation_error_deg(T[:3, :3], T_gt[:3, :3]))
     return out
 
 
-def _load_recording(args: argparse.Namespace, scene):
-    """The query of ``args.seq_dir`` (:func:`jaxloc.io.load_camera_sequence`) with the map's
-    class embeddings and the recording's transform."""
-    from jaxloc.io import (
-        load_camera_sequence,
-        load_class_embeddings,
-        read_label_table,
-        read_rescan_transform,
-    )
-    from jaxloc.io.camera_frames import read_matrix
-    from jaxloc.io.rscan_sequence import scan_id_of
+def _load_recording(args: argparse.Namespace):
+    """The recording of ``args.seq_dir`` as a query for ``args.map``
+    (:func:`jaxloc.io.open_camera_recording`)."""
+    from jaxloc.io import open_camera_recording
 
-    if args.rescan_json is not None and args.transform is not None:
-        raise InputError("give --rescan-json or --transform, not both")
-    transform = None
-    if args.transform is not None:
-        transform = read_matrix(args.transform)
-    elif args.rescan_json is not None:
-        scan_id = args.scan_id or scan_id_of(args.seq_dir)
-        transform = read_rescan_transform(args.rescan_json, scan_id)
-    label_map = None
-    if args.label_table is not None:
-        table = read_label_table(args.label_table, args.label_column, key="id")
-        label_map = {int(k): v for k, v in table.items() if k.isdigit()}
-    classes = load_class_embeddings(args.map) if args.labels is not None else None
-    if min(args.patches) < 1:
-        raise InputError(f"--patches must be >= 1, got {args.patches}")
-    return load_camera_sequence(
+    return open_camera_recording(
         args.seq_dir,
-        args.format,
-        args.width,
-        args.height,
-        embedding_dim=int(scene.embeddings.shape[1]),
+        format=args.format,
+        map_file=args.map,
+        width=args.width,
+        height=args.height,
         embeddings_dir=args.embeddings,
         labels_dir=args.labels,
-        classes=classes,
-        label_map=label_map,
+        label_table=args.label_table,
+        label_column=args.label_column,
         patch_shape=tuple(args.patches),
-        transform=transform,
+        rescan_json=args.rescan_json,
+        scan_id=args.scan_id,
+        transform=args.transform,
         odometry=args.odometry,
         step=args.step,
         max_frames=args.max_frames,
@@ -196,30 +173,10 @@ def _load_recording(args: argparse.Namespace, scene):
     )
 
 
-def _write_poses(args: argparse.Namespace, folder, poses: np.ndarray) -> None:
-    """``--poses-out``: the estimated camera-to-world poses (the estimate's x, y, z, yaw and the
-    frame's known tilt), TUM (timestamps, else frame numbers) or KITTI."""
-    import jax
-    import jax.numpy as jnp
-
-    from jaxloc.geometry import yaw_pose_to_se3
-    from jaxloc.io.poses import write_kitti, write_tum
-
-    tilt = jnp.asarray(folder.sequence.tilt)
-    se3 = jax.vmap(yaw_pose_to_se3)(jnp.asarray(poses, jnp.float32), tilt)
-    matrices = np.asarray(se3.as_matrix(), np.float64)
-    if args.pose_format == "kitti":
-        write_kitti(args.poses_out, matrices)
-        return
-    stamps = folder.timestamps
-    if stamps is None:
-        stamps = np.asarray(folder.frame_ids, np.float64)
-    write_tum(args.poses_out, matrices, stamps)
-
-
 def run_localize_camera(args: argparse.Namespace) -> int:
     import jax
 
+    from jaxloc.io import write_camera_poses
     from jaxloc.io.scene_map import load_scene
     from jaxloc.metrics import summarize, yaw_pose_errors
     from jaxloc.sg2loc import localize
@@ -228,7 +185,7 @@ def run_localize_camera(args: argparse.Namespace) -> int:
     config = _config(args)
     try:
         scene = load_scene(args.map)
-        folder = _load_recording(args, scene)
+        folder = _load_recording(args)
     except ValueError as error:
         raise InputError(str(error)) from None
     seq = folder.sequence
@@ -271,7 +228,7 @@ def run_localize_camera(args: argparse.Namespace) -> int:
     if args.refine:
         report["refined"] = _refine_last(scene, folder, result)
     if args.poses_out is not None:
-        _write_poses(args, folder, poses)
+        write_camera_poses(args.poses_out, folder, poses, args.pose_format)
         report["poses_out"] = str(args.poses_out)
     if args.plot is not None:
         report["figure"] = str(plot_rounds(result, folder.poses_gt, args.plot, scene=scene))

@@ -7,23 +7,18 @@ import argparse
 import json
 import time
 import warnings
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from jaxloc.cli._errors import InputError
-from jaxloc.cli._lidar_drive import DriveTracker, fuse_window, window_odometry, window_sizes
 from jaxloc.cli._lidar_scans import (
     POSES_OUT_HELP,
-    ScanInstances,
-    ScanRef,
-    attach_ground_truth,
     check_poses_out,
-    expand_scans,
-    load_scan,
+    drive_options,
     note,
-    write_poses_out,
+    note_sequences,
+    reading,
 )
 
 DESCRIPTION = """\
@@ -130,28 +125,6 @@ def check_config_args(args: argparse.Namespace) -> None:
         raise InputError(f"--min-clique must be >= 1, got {args.min_clique}")
 
 
-def load_map_files(map_dir: Path, classes: Sequence[int], use_rsn: bool):
-    """Read ``instances/<class>.txt`` and, when present and wanted, ``RSN/road_normal.txt``.
-
-    Returns the :class:`~jaxloc.io.InstanceMap` and the RoadNormals (or None).
-    """
-    from jaxloc.io import load_instance_map, load_road_normals
-
-    if not map_dir.is_dir():
-        raise InputError(f"map folder not found: {map_dir}")
-    for class_id in classes:
-        if not (map_dir / "instances" / f"{class_id}.txt").is_file():
-            raise InputError(f"{map_dir}: missing instances/{class_id}.txt (lines: id x y z)")
-    try:
-        instances = load_instance_map(map_dir, tuple(classes))
-        normals = None
-        if use_rsn and (map_dir / "RSN" / "road_normal.txt").is_file():
-            normals = load_road_normals(map_dir)
-    except ValueError as error:  # the loaders name file:line
-        raise InputError(str(error)) from error
-    return instances, normals
-
-
 def notes_of_small_maps(command: str, name: str):
     """A context manager that turns :class:`jaxloc.m2loc.SmallMapWarning` into one note per
     warning on stderr (a clamped ``top_k`` is not an error)."""
@@ -190,37 +163,22 @@ def describe_map(
 
 
 def open_map(path: Path, args: argparse.Namespace):
-    """The described map of ``MAP``: a saved ``.npz`` (:func:`jaxloc.io.save_triplet_map`;
-    the options that do not change descriptors override its settings) or a map folder (described
-    with the options). Returns the TripletMap and the number of seconds it took."""
-    import dataclasses
-
-    import equinox as eqx
-
-    from jaxloc.io import load_triplet_map
-    from jaxloc.m2loc import fit_config_to_map
+    """The described map of ``MAP`` (:func:`jaxloc.io.open_triplet_map`): a saved ``.npz`` (the
+    options that do not change descriptors override its settings) or a map folder (described with
+    the options). Returns the TripletMap and the number of seconds it took."""
+    from jaxloc.io import open_triplet_map
 
     start = time.perf_counter()
-    if path.is_file():
-        if args.scales is not None or args.tripletloc:
-            raise InputError(
-                f"{path}: a saved map keeps the descriptors it was described with; drop "
-                "--scales / --tripletloc (or describe the map folder again)"
-            )
-        try:
-            with notes_of_small_maps(args.command, str(path)):
-                triplet_map = load_triplet_map(path)
-                config = dataclasses.replace(triplet_map.config, **_matching_options(args))
-                config = fit_config_to_map(config, int(triplet_map.points.shape[0]))
-        except ValueError as error:  # MapFormatError, or an option the map cannot take
-            raise InputError(f"{path}: {error}") from error
-        triplet_map = eqx.tree_at(lambda m: m.config, triplet_map, config)
-    else:
-        config = triplet_config(args)
-        instances, normals = load_map_files(path, config.descriptor.classes, not args.no_rsn)
-        triplet_map = describe_map(
-            instances.points, instances.labels, config, normals, str(path), args.command
+    if path.is_file() and (args.scales is not None or args.tripletloc):
+        raise InputError(
+            f"{path}: a saved map keeps the descriptors it was described with; drop "
+            "--scales / --tripletloc (or describe the map folder again)"
         )
+    with reading(), notes_of_small_maps(args.command, str(path)):
+        if path.is_file():
+            triplet_map = open_triplet_map(path, replace=_matching_options(args))
+        else:
+            triplet_map = open_triplet_map(path, triplet_config(args))
     return triplet_map, time.perf_counter() - start
 
 
@@ -230,37 +188,14 @@ def check_save_path(path: Path | None) -> None:
         raise InputError(f"--save-map {path}: the file name must end in .npz")
 
 
-#: Query size bands already run in this process (their first run compiled or loaded them).
-_RUN_BANDS: set[int] = set()
+def _scan_record(recording, index: int, step, track: bool) -> dict:
+    """The JSON record of scan ``index`` (a :class:`jaxloc.m2loc.DriveStep`)."""
+    from jaxloc.m2loc import STATUS_NAMES, localization_errors
 
-
-def localize_one(triplet_map, scan: ScanInstances):
-    """Localize a scan; the first call of a query size band compiles (or loads from the cache)
-    its programs, so it is run again to time the query alone.
-
-    Returns the :class:`~jaxloc.m2loc.LocalizationResult` and the compile or load time (s, 0 if
-    none).
-    """
-    from jaxloc.m2loc import localize_scan, query_capacity
-
-    band = query_capacity(max(len(scan.points), 1), triplet_map.config)
-    start = time.perf_counter()
-    result = localize_scan(triplet_map, None, scan.points, scan.labels)
-    first = time.perf_counter() - start
-    if band in _RUN_BANDS:
-        return result, 0.0
-    _RUN_BANDS.add(band)
-    start = time.perf_counter()
-    result = localize_scan(triplet_map, None, scan.points, scan.labels)
-    return result, max(first - (time.perf_counter() - start), 0.0)
-
-
-def _scan_record(ref: ScanRef, scan: ScanInstances, result, compile_s: float) -> dict:
-    from jaxloc.m2loc import localization_errors
-
+    scan, result = step.instances, step.result
     counts = {int(c): int(np.sum(scan.labels == c)) for c in np.unique(scan.labels)}
     record = {
-        "scan": str(ref.path),
+        "scan": recording.name(index),
         "instances": int(len(scan.points)),
         "instances_per_class": {str(c): n for c, n in counts.items()},
         "valid": bool(result.valid),
@@ -268,16 +203,23 @@ def _scan_record(ref: ScanRef, scan: ScanInstances, result, compile_s: float) ->
         "clique_size": int(result.clique_size),
         "scales_used": int(result.scales_used),
         "T_map_scan": np.round(result.pose, 6).tolist(),
-        "load_ms": round(scan.load_ms, 3),
+        "load_ms": round(step.load_ms, 3),
         "descriptor_ms": round(result.descriptor_time_ms, 3),
         "match_ms": round(result.match_time_ms, 3),
-        "compile_s": round(compile_s, 3),
+        "compile_s": round(step.compile_s, 3),
     }
-    if ref.timestamp is not None:
-        record["timestamp_ns"] = int(ref.timestamp)
-    if ref.T_gt is not None:
-        rte, rre = localization_errors(result.pose, ref.T_gt)
+    if recording.stamps[index] is not None:
+        record["timestamp_ns"] = int(recording.stamps[index])
+    if recording.has_pose[index]:
+        rte, rre = localization_errors(result.pose, recording.poses[index])
         record["rte_m"], record["rre_deg"] = float(rte), float(rre)
+    if track:
+        record["track"] = STATUS_NAMES[step.status]
+    if step.fused is not None:
+        record["fused_scans"] = int(step.fused.members.shape[1])
+        record["fused_instances"] = len(step.fused.points)
+        if not track:
+            record["small_clique"] = step.small_clique
     return record
 
 
@@ -320,22 +262,24 @@ def _format_record(record: dict) -> str:
 def run_localize_lidar(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
-    from jaxloc.io import save_triplet_map
-    from jaxloc.m2loc import SUCCESS_RRE_DEG, SUCCESS_RTE_M, WINDOW_MIN_CLIQUE, require_clique
+    from jaxloc.io import open_lidar_recording, save_triplet_map, write_lidar_poses
+    from jaxloc.m2loc import SUCCESS_RRE_DEG, SUCCESS_RTE_M, localize_drive
 
     check_config_args(args)
     check_save_path(args.save_map)
     check_poses_out(args)
     if args.every < 1:
         raise InputError(f"--every must be >= 1, got {args.every}")
-    least_scans, most_scans, instances = window_sizes(args)
-    refs = expand_scans(args.scans, args)
-    if args.gt is not None:
-        refs = attach_ground_truth(refs, args.gt)
+    accumulate, drive_config = drive_options(args)
+    with reading():
+        recording = open_lidar_recording(
+            args.scans, layout=args.format, sensor=args.sensor, every=args.every, gt=args.gt
+        )
+        drive = recording if args.odometry is None else recording.with_poses(args.odometry)
+    note_sequences(args, recording.sequences)
     triplet_map, build_s = open_map(args.map, args)
     if args.save_map is not None:
         save_triplet_map(triplet_map, args.save_map)
-    classes = triplet_map.config.descriptor.classes
     num_vertices, has_rsn = int(triplet_map.points.shape[0]), triplet_map.has_rsn
     say = (lambda _: None) if args.json else print
     say(
@@ -343,41 +287,31 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
         f"{'with' if has_rsn else 'without'} road normals, "
         f"{'loaded' if args.map.is_file() else 'described'} in {build_s:.1f} s"
     )
-    odometry = window_odometry(refs, args)
-    tracker = DriveTracker(triplet_map) if args.track else None
-    records, results = [], []
-    window: list[ScanInstances] = []
-    show_bar = len(refs) > 1 and not args.no_progress
-    for i, ref in enumerate(tqdm(refs, unit="scan", disable=not show_bar)):
-        scan = load_scan(ref, classes)
-        window = [scan, *window][:most_scans]  # newest first
-        try:
-            query, fused_scans = scan, 1
-            if len(window) > 1:
-                query, fused_scans = fuse_window(window, odometry[i::-1], least_scans, instances)
-            if tracker is not None:
-                T_prev_scan = np.linalg.inv(odometry[i - 1]) @ odometry[i] if i else np.eye(4)
-                result, mode, compile_s = tracker.step(query, T_prev_scan)
-            else:
-                result, compile_s = localize_one(triplet_map, query)
-                if fused_scans > 1:  # a window's pose must rest on more than the minimal set
-                    refused = result.valid and result.clique_size < WINDOW_MIN_CLIQUE
-                    result = require_clique(result, WINDOW_MIN_CLIQUE)
-        except ValueError as error:  # duplicate points and the like: a problem of the scan
-            raise InputError(f"{ref.path}: {error}") from error
-        results.append(result)
-        records.append(_scan_record(ref, scan, result, compile_s))
-        if tracker is not None:
-            records[-1]["track"] = mode
-        if fused_scans > 1:
-            records[-1]["fused_scans"] = fused_scans
-            records[-1]["fused_instances"] = len(query.points)
-            if tracker is None:
-                records[-1]["small_clique"] = bool(refused)
+    records = []
+    bar = tqdm(total=len(recording), unit="scan", disable=len(recording) < 2 or args.no_progress)
+
+    def progress(index: int, step) -> None:
+        records.append(_scan_record(recording, index, step, args.track))
+        bar.update()
         if not args.json:
             tqdm.write(_format_record(records[-1]))
+
+    with reading(), bar:
+        result = localize_drive(
+            triplet_map,
+            drive,
+            accumulate=accumulate,
+            track=args.track,
+            config=drive_config,
+            progress=progress,
+        )
     if args.poses_out is not None:
-        write_poses_out(args, refs, results)
+        left_out = write_lidar_poses(
+            args.poses_out, recording, result.poses, result.valid, args.pose_format
+        )
+        if left_out:
+            lost = f"{left_out} scan(s) that did not localize left out (TUM)"
+            note(args.command, f"{args.poses_out}: {lost}")
     summary = {"map": str(args.map), "map_instances": num_vertices, "map_build_s": build_s}
     judged = [r for r in records if "rte_m" in r]
     if judged:

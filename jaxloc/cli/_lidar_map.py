@@ -9,7 +9,7 @@ import numpy as np
 
 from jaxloc.cli._errors import InputError
 from jaxloc.cli._lidar import check_save_path, describe_map, triplet_config
-from jaxloc.cli._lidar_scans import open_sequence
+from jaxloc.cli._lidar_scans import open_sequence, reading
 
 DESCRIPTION = """\
 Builds a TripletLoc/HeLiPR-format instance map and road-surface-normal map from a labelled
@@ -71,13 +71,10 @@ def run_build_lidar_map(args: argparse.Namespace) -> int:
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise InputError(f"{args.out_dir}: exists and is not a folder")
     start = time.perf_counter()
-    try:
-        sequence = open_sequence(args.seq_dir, args, require_poses=True)
-        used = len(sequence.bins[:: args.every])
-        with tqdm(total=used, unit="scan", disable=args.no_progress) as bar:
-            maps = build_lidar_maps(sequence, MapBuildConfig(every=args.every), bar.update)
-    except (ValueError, FileNotFoundError) as error:  # the loaders name the file
-        raise InputError(str(error)) from error
+    sequence = open_sequence(args.seq_dir, args)
+    used = len(sequence.bins[:: args.every])
+    with reading(), tqdm(total=used, unit="scan", disable=args.no_progress) as bar:
+        maps = build_lidar_maps(sequence, MapBuildConfig(every=args.every), bar.update)
     instances, normals = maps.instances, maps.road_normals
     triplet_map = None
     if args.save_map is not None:  # describe before writing anything: a bad map writes nothing

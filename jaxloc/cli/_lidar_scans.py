@@ -1,24 +1,20 @@
-"""The scans and poses of the LiDAR commands: scan arguments (files and sequence folders in any
-layout), ground truth matched by time or by order, and the ``--poses-out`` trajectory."""
+"""The recording options of the LiDAR commands (``--format``, ``--sensor``, ``--poses-out``, the
+drive's ``--accumulate`` family), their checks, and the notes and errors of reading: the reading
+itself is :func:`jaxloc.io.open_lidar_recording` and :func:`jaxloc.io.load_lidar_sequence`."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
-import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import NamedTuple
-
-import numpy as np
 
 from jaxloc.cli._errors import InputError
 
-#: Suffix of an instance-centroid scan file (lines ``class_id x y z``).
-CENTROID_SUFFIX = ".txt"
 #: What ``--format`` accepts (:data:`jaxloc.io.lidar_sequence.LAYOUTS`).
 SEQUENCE_FORMATS = ("semantickitti", "plain", "helipr")
-#: What ``--pose-format`` accepts.
+#: What ``--pose-format`` accepts (:func:`jaxloc.io.write_lidar_poses`).
 POSE_FORMATS = ("tum", "kitti")
 
 POSES_OUT_HELP = """\
@@ -32,31 +28,24 @@ invalid ones included with the pose jaxloc returns for them (the identity), sinc
 matched line by line; evo_ape on it then counts a failed scan's error as jaxloc's RTE does."""
 
 
-class ScanRef(NamedTuple):
-    """One scan to localize: ``path``, its ``number`` (index in its sequence folder, else its
-    position among the scans), ``timestamp`` (int ns or None), the ``sequence`` it comes from
-    (or None) and its ``index`` there, and its ground truth ``T_gt`` (4, 4) or None."""
-
-    path: Path
-    number: int
-    timestamp: int | None = None
-    sequence: object | None = None
-    index: int = 0
-    T_gt: np.ndarray | None = None
-
-
-class ScanInstances(NamedTuple):
-    """Instance centroids of one scan: ``points`` (N, 3) float64 metres in the scan frame,
-    ``labels`` (N,) int class ids, ``load_ms`` time to read (and cluster) the scan."""
-
-    points: np.ndarray
-    labels: np.ndarray
-    load_ms: float
-
-
 def note(command: str, message: str) -> None:
     """One line on stderr that is not an error: ``jaxloc COMMAND: note: message``."""
     print(f"jaxloc {command}: note: {message}", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def reading() -> Iterator[None]:
+    """The library's input errors as InputError (one line, exit 2): a ValueError, and a
+    FileNotFoundError that names its file in its message (one with a ``filename`` goes on to
+    :func:`jaxloc.cli._errors.run_guarded`: ``missing file: ...``)."""
+    try:
+        yield
+    except FileNotFoundError as error:
+        if error.filename is not None:
+            raise
+        raise InputError(str(error)) from error
+    except ValueError as error:  # the readers name the file
+        raise InputError(str(error)) from error
 
 
 def add_sequence_options(parser: argparse.ArgumentParser) -> None:
@@ -87,197 +76,32 @@ def add_pose_output_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def open_sequence(path: Path, args: argparse.Namespace, require_poses: bool):
-    """:func:`jaxloc.io.load_lidar_sequence` with ``--format`` / ``--sensor``; errors as
-    InputError, a note on stderr for the sensor chosen among several and for scans left out."""
+def note_sequences(args: argparse.Namespace, sequences: Sequence) -> None:
+    """A note on stderr for each HeLiPR sequence whose sensor was chosen among several and for
+    each sequence whose scans without a pose were left out."""
+    for sequence in sequences:
+        if sequence.layout == "helipr" and args.sensor is None and len(sequence.sensors) > 1:
+            note(
+                args.command,
+                f"{sequence.root}: scans of {list(sequence.sensors)}; reading {sequence.sensor} "
+                "(--sensor)",
+            )
+        if sequence.skipped:
+            note(
+                args.command,
+                f"{sequence.root}: {len(sequence.skipped)} scan(s) without a pose at their time "
+                f"left out (first: {sequence.skipped[0].name})",
+            )
+
+
+def open_sequence(path: Path, args: argparse.Namespace):
+    """:func:`jaxloc.io.load_lidar_sequence` with its poses, ``--format`` and ``--sensor``."""
     from jaxloc.io import load_lidar_sequence
-    from jaxloc.io.helipr import helipr_sensors
 
-    try:
-        sequence = load_lidar_sequence(path, require_poses, args.format, args.sensor)
-    except (ValueError, FileNotFoundError) as error:  # the loaders name the file
-        raise InputError(str(error)) from error
-    if sequence.layout == "helipr" and args.sensor is None:
-        present = helipr_sensors(path)
-        if len(present) > 1:
-            note(args.command, f"{path}: scans of {present}; reading {sequence.sensor} (--sensor)")
-    if sequence.skipped:
-        note(
-            args.command,
-            f"{path}: {len(sequence.skipped)} scan(s) without a pose at their time left out "
-            f"(first: {sequence.skipped[0].name})",
-        )
+    with reading():
+        sequence = load_lidar_sequence(path, True, args.format, args.sensor)
+    note_sequences(args, [sequence])
     return sequence
-
-
-def _label_path(bin_path: Path) -> Path:
-    """The ``.label`` of a SemanticKITTI ``.bin``: beside it, or in ``../labels/`` (the dataset's
-    ``velodyne/`` + ``labels/`` layout)."""
-    beside = bin_path.with_suffix(".label")
-    if beside.exists():
-        return beside
-    dataset_layout = bin_path.parent.parent / "labels" / beside.name
-    if dataset_layout.exists():
-        return dataset_layout
-    raise InputError(f"{bin_path}: no label file (looked for {beside} and {dataset_layout})")
-
-
-def check_scan_path(path: Path) -> None:
-    """Cheap checks before any work: the scan exists, its format is known, a ``.bin`` has labels."""
-    from jaxloc.io.helipr import helipr_scan_label
-
-    if not path.exists():
-        raise InputError(f"missing scan: {path}")
-    if path.is_dir():
-        return
-    if path.suffix == ".bin":
-        found = helipr_scan_label(path)
-        if found is None:
-            _label_path(path)
-        elif not found[1].is_file():
-            raise InputError(f"{path}: no label file (looked for {found[1]})")
-    elif path.suffix != CENTROID_SUFFIX:
-        raise InputError(
-            f"{path}: unknown scan format (expected .bin + .label, a {CENTROID_SUFFIX} "
-            "centroid file, or a folder with instances/<class>.txt)"
-        )
-
-
-def load_centroid_scan(path: Path, classes: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
-    """Read an instance-centroid scan file: lines ``class_id x y z`` (scan frame, metres; ``#``
-    starts a comment).
-
-    Returns (N, 3) float64 points and (N,) int64 class ids.
-
-    Raises:
-        ValueError: naming the file (and line): not UTF-8 text, a wrong field count, a
-            non-number or NaN/inf, non-integer or unknown class ids.
-    """
-    from jaxloc.io._text import data_lines
-
-    rows = []
-    for line_number, line in data_lines(path, comments=True):
-        fields = line.split()
-        if len(fields) != 4:
-            raise ValueError(
-                f"{path}:{line_number}: expected 4 numbers (class_id x y z), got {len(fields)}"
-            )
-        try:
-            values = np.array([float(field) for field in fields])
-        except ValueError:
-            raise ValueError(f"{path}:{line_number}: not a number in {line[:60]!r}") from None
-        if not np.all(np.isfinite(values)):
-            raise ValueError(f"{path}:{line_number}: non-finite value in {line[:60]!r}")
-        rows.append(values)
-    table = np.asarray(rows, np.float64).reshape(-1, 4)
-    labels = table[:, 0]
-    if np.any(labels != np.round(labels)):
-        raise ValueError(f"{path}: class ids (first column) must be integers")
-    unknown = sorted(set(labels.astype(int).tolist()) - set(classes))
-    if unknown:
-        raise ValueError(f"{path}: unknown class ids {unknown}; expected some of {list(classes)}")
-    return table[:, 1:4], labels.astype(np.int64)
-
-
-def _labelled_scan(ref: ScanRef):
-    from jaxloc.io import load_helipr_scan, load_semantickitti_scan, load_sequence_scan
-    from jaxloc.io.helipr import helipr_scan_label
-
-    if ref.sequence is not None:
-        return load_sequence_scan(ref.sequence, ref.index)
-    found = helipr_scan_label(ref.path)
-    if found is not None:
-        return load_helipr_scan(ref.path, found[1], found[0])
-    return load_semantickitti_scan(ref.path, _label_path(ref.path))
-
-
-def load_scan(ref: ScanRef, classes: Sequence[int]) -> ScanInstances:
-    """Instance centroids of a scan: a labelled point scan (SemanticKITTI or HeLiPR ``.bin`` +
-    ``.label``, alone or from a sequence) clustered with TripletLoc's recipe, a centroid
-    ``.txt`` (``class_id x y z``), or a folder in the map's format (``instances/<class>.txt``)."""
-    from jaxloc.io import load_instance_map
-    from jaxloc.m2loc import cluster_instances
-
-    path = ref.path
-    if ref.sequence is None:
-        check_scan_path(path)
-    start = time.perf_counter()
-    try:
-        if ref.sequence is None and path.is_dir():
-            instances = load_instance_map(path, tuple(classes))
-            points, labels = instances.points, instances.labels
-        elif ref.sequence is not None or path.suffix == ".bin":
-            scan = _labelled_scan(ref)
-            instances = cluster_instances(scan.points, scan.labels)
-            points, labels = instances.points, instances.labels
-        else:
-            points, labels = load_centroid_scan(path, classes)
-    except (ValueError, FileNotFoundError) as error:  # the loaders name the file
-        raise InputError(str(error)) from error
-    return ScanInstances(points, labels, 1e3 * (time.perf_counter() - start))
-
-
-def _is_sequence(path: Path, args: argparse.Namespace) -> bool:
-    from jaxloc.io import is_sequence_dir
-
-    if not path.is_dir() or (path / "instances").is_dir():
-        return False
-    return args.format is not None or is_sequence_dir(path)
-
-
-def expand_scans(paths: Sequence[Path], args: argparse.Namespace) -> list[ScanRef]:
-    """SCAN arguments as scans: a sequence folder (any layout, ``--format`` / ``--sensor``)
-    gives every ``--every``-th of its scans with their timestamps and ground truth (when the
-    folder has poses); other arguments are single scans (a HeLiPR ``LiDAR/<sensor>/<stamp>.bin``
-    keeps its stamp)."""
-    from jaxloc.io.helipr import helipr_scan_label, scan_stamp
-
-    refs: list[ScanRef] = []
-    for path in paths:
-        if not _is_sequence(path, args):
-            check_scan_path(path)
-            try:
-                stamp = scan_stamp(path) if helipr_scan_label(path) is not None else None
-            except ValueError as error:  # a HeLiPR scan not named by its stamp
-                raise InputError(str(error)) from error
-            refs.append(ScanRef(path, len(refs), stamp))
-            continue
-        sequence = open_sequence(path, args, require_poses=False)
-        for index in range(0, len(sequence.bins), args.every):
-            stamps, truth = sequence.timestamps, sequence.T_map_scan
-            refs.append(
-                ScanRef(
-                    sequence.bins[index],
-                    index,
-                    None if stamps is None else int(stamps[index]),
-                    sequence,
-                    index,
-                    None if truth is None else truth[index],
-                )
-            )
-    return refs
-
-
-def attach_ground_truth(refs: list[ScanRef], path: Path) -> list[ScanRef]:
-    """``--gt FILE`` (KITTI, 4x4 or TUM/HeLiPR lines, :func:`jaxloc.io.read_pose_file`): by time
-    when the file and every scan have timestamps (scans without a pose at their time get none),
-    else line i for the i-th scan (the counts must agree)."""
-    from jaxloc.io import read_pose_file
-    from jaxloc.io.lidar_sequence import assign_poses
-
-    stamps = [ref.timestamp for ref in refs]
-    timed = None if None in stamps else np.asarray(stamps, np.int64)
-    try:
-        found = read_pose_file(path)
-        if (found.timestamps is None or timed is None) and len(found.poses) != len(refs):
-            raise ValueError(f"{path}: {len(found.poses)} poses for {len(refs)} scan(s)")
-        poses, matched, _ = assign_poses(found, timed, len(refs), path)
-    except ValueError as error:
-        raise InputError(str(error)) from error
-    return [
-        ref._replace(T_gt=pose if ok else None)
-        for ref, pose, ok in zip(refs, poses, matched, strict=True)
-    ]
 
 
 def check_poses_out(args: argparse.Namespace) -> None:
@@ -286,21 +110,26 @@ def check_poses_out(args: argparse.Namespace) -> None:
         raise InputError(f"--poses-out {args.poses_out}: is a folder")
 
 
-def write_poses_out(args: argparse.Namespace, refs: list[ScanRef], results: list) -> None:
-    """Write ``--poses-out`` (:data:`POSES_OUT_HELP`)."""
-    from jaxloc.io import write_kitti, write_tum
+def drive_options(args: argparse.Namespace):
+    """``--accumulate K --accumulate-max M --window-instances N`` (and that ``--odometry`` is
+    used), checked, as ``(K, jaxloc.m2loc.DriveConfig)`` (M = 2K and N =
+    :data:`jaxloc.m2loc.WINDOW_MIN_INSTANCES` by default)."""
+    from jaxloc.m2loc import DriveConfig
 
-    poses = np.asarray([result.pose for result in results], np.float64).reshape(-1, 4, 4)
-    if args.pose_format == "kitti":
-        write_kitti(args.poses_out, poses)
-        return
-    valid = np.array([bool(result.valid) for result in results], bool)
-    stamps = np.array(
-        [ref.number * 10**9 if ref.timestamp is None else ref.timestamp for ref in refs], np.int64
-    )
-    write_tum(args.poses_out, poses[valid], stamps[valid])
-    if not valid.all():
-        note(
-            args.command,
-            f"{args.poses_out}: {int((~valid).sum())} scan(s) that did not localize left out (TUM)",
-        )
+    least, most, instances = args.accumulate, args.accumulate_max, args.window_instances
+    if least < 1:
+        raise InputError(f"--accumulate must be >= 1, got {least}")
+    if args.odometry is not None and least == 1 and not args.track:
+        raise InputError("--odometry is only used with --accumulate K > 1 or --track")
+    if least == 1:
+        for option, value in (("--window-instances", instances), ("--accumulate-max", most)):
+            if value is not None:
+                raise InputError(f"{option} is only used with --accumulate K > 1")
+        return 1, DriveConfig()
+    if most is not None and most < least:
+        raise InputError(f"--accumulate-max must be >= --accumulate ({least}), got {most}")
+    if instances is not None and instances < 0:
+        raise InputError(f"--window-instances must be >= 0, got {instances}")
+    if instances is None:
+        return least, DriveConfig(most_scans=most)
+    return least, DriveConfig(most_scans=most, min_instances=instances)

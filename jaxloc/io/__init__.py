@@ -4,6 +4,9 @@ file; writers write atomically (a temporary file, then a rename). Nothing is eve
 
 Camera (SG2Loc):
 
+* :mod:`~jaxloc.io.camera_recording`: a camera recording opened as a query in one call
+  (:func:`open_camera_recording`), its estimated poses written for evo
+  (:func:`write_camera_poses`).
 * :mod:`~jaxloc.io.camera_sequence`: query sequences from camera recordings, in any of
   :mod:`~jaxloc.io.scannet_export` (ScanNet's export folder), :mod:`~jaxloc.io.scannet_sens`
   (ScanNet ``.sens`` files) and :mod:`~jaxloc.io.rscan_sequence` (3RScan sequences), their frames
@@ -22,13 +25,17 @@ LiDAR (M2Loc):
 * :mod:`~jaxloc.io.semantickitti`: SemanticKITTI scans (``.bin`` / ``.label``).
 * :mod:`~jaxloc.io.lidar_sequence`: labelled scan sequences (SemanticKITTI, plain and HeLiPR
   layouts), each scan read by :func:`load_sequence_scan`.
+* :mod:`~jaxloc.io.lidar_recording`: any LiDAR recording jaxloc reads (a sequence folder of any
+  layout, scan files, centroid files) as one :class:`LidarRecording`
+  (:func:`open_lidar_recording`), and estimated poses written for evo
+  (:func:`write_lidar_poses`).
 * :mod:`~jaxloc.io.helipr`: HeLiPR / TripletLoc scans (four sensors' point records), SPVNAS
   labels and ground truth.
 * :mod:`~jaxloc.io.poses`: pose files (KITTI, 4x4 rows, TUM) in and out (:func:`read_pose_file`,
   :func:`write_tum`, :func:`write_kitti`).
 * :mod:`~jaxloc.io.instance_maps`: HeLiPR / TripletLoc instance maps and road normals (text).
 * :mod:`~jaxloc.io.lidar_map`: the described M2Loc map's own file (:func:`save_triplet_map`,
-  :func:`load_triplet_map`).
+  :func:`load_triplet_map`), and the described map of a file or folder (:func:`open_triplet_map`).
 """
 
 from typing import TYPE_CHECKING
@@ -42,7 +49,10 @@ _EXPORTS = {
     "CameraRecording": "camera_sequence",
     "detect_camera_format": "camera_sequence",
     "load_camera_sequence": "camera_sequence",
-    "open_camera_recording": "camera_sequence",
+    "open_frame_source": "camera_sequence",
+    "camera_pose_matrices": "camera_recording",
+    "open_camera_recording": "camera_recording",
+    "write_camera_poses": "camera_recording",
     "EmbeddingTable": "embedding_table",
     "load_embedding_table": "embedding_table",
     "MapFormatError": "errors",
@@ -50,13 +60,19 @@ _EXPORTS = {
     "read_helipr_gt": "helipr",
     "InstanceMap": "instance_maps",
     "load_instance_map": "instance_maps",
+    "load_lidar_map": "instance_maps",
     "load_road_normals": "instance_maps",
     "save_lidar_maps": "instance_maps",
     "patch_embeddings_from_labels": "label_images",
     "read_label_image": "label_images",
     "TRIPLET_MAP_FORMAT_VERSION": "lidar_map:FORMAT_VERSION",
     "load_triplet_map": "lidar_map",
+    "open_triplet_map": "lidar_map",
     "save_triplet_map": "lidar_map",
+    "LidarRecording": "lidar_recording",
+    "load_centroid_scan": "lidar_recording",
+    "open_lidar_recording": "lidar_recording",
+    "write_lidar_poses": "lidar_recording",
     "LidarSequence": "lidar_sequence",
     "detect_layout": "lidar_sequence",
     "is_sequence_dir": "lidar_sequence",
@@ -93,12 +109,17 @@ _EXPORTS = {
 __getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
 
 if TYPE_CHECKING:  # the lazy names, for type checkers and the API reference
+    from jaxloc.io.camera_recording import (
+        camera_pose_matrices,
+        open_camera_recording,
+        write_camera_poses,
+    )
     from jaxloc.io.camera_sequence import (
         CAMERA_FORMATS,
         CameraRecording,
         detect_camera_format,
         load_camera_sequence,
-        open_camera_recording,
+        open_frame_source,
     )
     from jaxloc.io.embedding_table import EmbeddingTable, load_embedding_table
     from jaxloc.io.errors import MapFormatError
@@ -106,12 +127,19 @@ if TYPE_CHECKING:  # the lazy names, for type checkers and the API reference
     from jaxloc.io.instance_maps import (
         InstanceMap,
         load_instance_map,
+        load_lidar_map,
         load_road_normals,
         save_lidar_maps,
     )
     from jaxloc.io.label_images import patch_embeddings_from_labels, read_label_image
     from jaxloc.io.lidar_map import FORMAT_VERSION as TRIPLET_MAP_FORMAT_VERSION
-    from jaxloc.io.lidar_map import load_triplet_map, save_triplet_map
+    from jaxloc.io.lidar_map import load_triplet_map, open_triplet_map, save_triplet_map
+    from jaxloc.io.lidar_recording import (
+        LidarRecording,
+        load_centroid_scan,
+        open_lidar_recording,
+        write_lidar_poses,
+    )
     from jaxloc.io.lidar_sequence import (
         LidarSequence,
         detect_layout,
@@ -145,16 +173,22 @@ __all__ = [
     "InstanceMap",
     "LabelledReconstruction",
     "LabelledScan",
+    "LidarRecording",
     "LidarSequence",
     "PoseFile",
     "MapFormatError",
     "ReconstructionObject",
     "detect_layout",
     "is_sequence_dir",
+    "camera_pose_matrices",
     "detect_camera_format",
     "load_camera_sequence",
+    "load_centroid_scan",
     "load_class_embeddings",
     "open_camera_recording",
+    "open_frame_source",
+    "open_lidar_recording",
+    "open_triplet_map",
     "open_rscan_sequence",
     "open_scannet_export",
     "open_sens",
@@ -164,6 +198,7 @@ __all__ = [
     "read_sens_header",
     "load_embedding_table",
     "load_instance_map",
+    "load_lidar_map",
     "load_helipr_scan",
     "load_lidar_sequence",
     "load_sequence_scan",
@@ -186,6 +221,8 @@ __all__ = [
     "save_scene",
     "save_triplet_map",
     "semantickitti_class_ids",
+    "write_camera_poses",
     "write_kitti",
+    "write_lidar_poses",
     "write_tum",
 ]

@@ -1,4 +1,5 @@
-"""A query :class:`~jaxloc.sg2loc.sequence.Sequence` from a camera recording on disk.
+"""A query :class:`~jaxloc.sg2loc.sequence.Sequence` from a camera recording on disk (with the
+side files named as files: :func:`jaxloc.io.open_camera_recording`).
 
 Three layouts, detected (or named with ``format=``):
 
@@ -105,8 +106,9 @@ def detect_camera_format(path: str | os.PathLike) -> str:
     )
 
 
-def open_camera_recording(path: str | os.PathLike, format: str | None = None) -> FrameSource:
-    """Open ``path`` in its layout (detected unless ``format`` names one)."""
+def open_frame_source(path: str | os.PathLike, format: str | None = None) -> FrameSource:
+    """The frame stream of ``path`` in its layout (detected unless ``format`` names one); the
+    query itself: :func:`load_camera_sequence`, or :func:`jaxloc.io.open_camera_recording`."""
     if format is None:
         format = detect_camera_format(path)
     openers = {
@@ -262,7 +264,7 @@ def load_camera_sequence(
         raise ValueError("step and max_frames must be >= 1")
     if transform is not None:
         transform = check_rigid(np.asarray(transform, np.float64).reshape(4, 4), "transform")
-    source = open_camera_recording(path, format)
+    source = open_frame_source(path, format)
     folder = _recording_folder(source)
     numbers = source.numbers[::step][:max_frames]
     native = source.color_size

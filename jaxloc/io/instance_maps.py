@@ -47,6 +47,29 @@ def load_instance_map(map_dir: str | Path, classes: tuple[int, ...] = GRAPH_CLAS
     return InstanceMap(np.concatenate(points), np.concatenate(labels), np.concatenate(ids))
 
 
+def load_lidar_map(
+    map_dir: str | os.PathLike, classes: tuple[int, ...] = GRAPH_CLASSES, road_normals: bool = True
+) -> tuple[InstanceMap, RoadNormals | None]:
+    """An instance-map folder: its ``instances/<class>.txt`` of ``classes`` and, when the folder has
+    one and ``road_normals`` is set, its ``RSN/road_normal.txt`` (else None).
+
+    Raises:
+        FileNotFoundError: no such folder, or a class file missing (naming them).
+        ValueError: a malformed file (:func:`load_instance_map`, :func:`load_road_normals`).
+    """
+    root = Path(map_dir)
+    if not root.is_dir():
+        raise FileNotFoundError(f"map folder not found: {root}")
+    for class_id in classes:
+        if not (root / "instances" / f"{class_id}.txt").is_file():
+            raise FileNotFoundError(f"{root}: missing instances/{class_id}.txt (lines: id x y z)")
+    instances = load_instance_map(root, tuple(classes))
+    normals = None
+    if road_normals and (root / "RSN" / "road_normal.txt").is_file():
+        normals = load_road_normals(root)
+    return instances, normals
+
+
 def load_road_normals(map_dir: str | Path) -> RoadNormals:
     """Read ``<map_dir>/RSN/road_normal.txt`` (lines ``x y nx ny nz std_deg``), normals unit-scaled.
 

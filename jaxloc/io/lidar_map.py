@@ -1,4 +1,5 @@
-"""Described maps on disk: :func:`save_triplet_map` / :func:`load_triplet_map`.
+"""Described maps on disk: :func:`save_triplet_map` / :func:`load_triplet_map`, and
+:func:`open_triplet_map`, the described map of a saved file or of an instance-map folder.
 
 One compressed ``.npz`` holds every array of a :class:`TripletMap` (vertices, class positions, the
 descriptors of every scale, RSN cells) and its :class:`TripletConfig` as JSON text, with a format
@@ -14,16 +15,27 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+from collections.abc import Mapping
 from pathlib import Path
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from jaxloc.io._atomic import write_npz_atomic
 from jaxloc.io._map_file import read_map_file
 from jaxloc.io.errors import MapFormatError
+from jaxloc.io.instance_maps import load_lidar_map
 from jaxloc.lsq import RobustLoss
-from jaxloc.m2loc import DescriptorConfig, TripletConfig, TripletMap, fit_config_to_map, map_grid
+from jaxloc.m2loc import (
+    DescriptorConfig,
+    TripletConfig,
+    TripletMap,
+    build_map,
+    fit_config_to_map,
+    m2loc_config,
+    map_grid,
+)
 
 FORMAT_NAME = "jaxloc.TripletMap"
 FORMAT_VERSION = 1
@@ -156,3 +168,50 @@ def load_triplet_map(path: str | os.PathLike) -> TripletMap:
     arrays = {name: jnp.asarray(content[name]) for name in _ARRAYS if name != "has_rsn"}
     grid = map_grid(arrays["points"], arrays["classes"], config.verify_radius)
     return TripletMap(**arrays, has_rsn=bool(content["has_rsn"]), config=config, grid=grid)
+
+
+def open_triplet_map(
+    path: str | os.PathLike,
+    config: TripletConfig | None = None,
+    *,
+    replace: Mapping[str, object] | None = None,
+) -> TripletMap:
+    """The described map at ``path``: a file saved by :func:`save_triplet_map` (loaded in about a
+    second), or an instance-map folder (``instances/<class>.txt`` and, with ``config.use_rsn``,
+    ``RSN/road_normal.txt`` when present; :func:`~jaxloc.io.instance_maps.load_lidar_map`)
+    described with ``config`` (default ``m2loc_config(3)``).
+
+    Args:
+        path: the ``.npz`` file or the map folder.
+        config: the folder's configuration (a saved map keeps the one it was described with).
+        replace: :class:`~jaxloc.m2loc.TripletConfig` fields to change that do not change the
+            descriptors (``top_k``, ``min_clique``, ``use_rsn``...), applied to either
+            configuration; ``top_k`` is then fitted to the map
+            (:func:`~jaxloc.m2loc.fit_config_to_map`).
+
+    Raises:
+        FileNotFoundError: no such file or folder, a missing class file.
+        ValueError: naming the file or folder: a corrupt map file (:class:`MapFormatError`), a
+            ``config`` given with a saved map, a setting the map cannot take, malformed files.
+
+    Warns:
+        SmallMapWarning: ``top_k`` exceeds the map's vertices (it is clamped).
+    """
+    path = Path(path)
+    replace = dict(replace or {})
+    if not path.is_file():
+        config = dataclasses.replace(config or m2loc_config(3), **replace)
+        instances, normals = load_lidar_map(path, config.descriptor.classes, config.use_rsn)
+        try:
+            return build_map(instances.points, instances.labels, config, normals)
+        except ValueError as error:
+            raise ValueError(f"map {path}: {error}") from error
+    if config is not None:
+        raise ValueError(f"{path}: a saved map keeps the configuration it was described with")
+    triplet_map = load_triplet_map(path)  # its errors name the file
+    try:
+        config = dataclasses.replace(triplet_map.config, **replace)
+        config = fit_config_to_map(config, int(triplet_map.points.shape[0]), stacklevel=2)
+    except ValueError as error:  # a setting the map cannot take
+        raise ValueError(f"{path}: {error}") from error
+    return eqx.tree_at(lambda m: m.config, triplet_map, config)

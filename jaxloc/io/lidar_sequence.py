@@ -63,6 +63,7 @@ class LidarSequence(NamedTuple):
         label_ids: "semantickitti" (raw SemanticKITTI ids, converted) or "spvnas" (jaxloc's
             class ids already, TripletLoc's labels).
         sensor: the HeLiPR scan folder read (e.g. "Ouster"), else None.
+        sensors: the HeLiPR scan folders that hold scans (``sensor`` among them), else ().
         skipped: scans left out because the pose file has no pose at their time.
         unused_poses: lines of the pose file that match no scan.
     """
@@ -76,6 +77,7 @@ class LidarSequence(NamedTuple):
     point_format: str = "kitti"
     label_ids: str = "semantickitti"
     sensor: str | None = None
+    sensors: tuple[str, ...] = ()
     skipped: tuple[Path, ...] = ()
     unused_poses: int = 0
 
@@ -275,6 +277,7 @@ def _helipr_sequence(root: Path, sensor: str | None, require_poses: bool) -> Lid
         helipr.SENSOR_FORMATS[sensor],
         "spvnas",
         sensor,
+        tuple(helipr.helipr_sensors(root)),
     )
     gt_path = root / "LiDAR_GT" / helipr.GT_FILES[sensor]
     if gt_path.is_file():

@@ -8,9 +8,10 @@ hypotheses: :func:`best_verified_clique`) -> Kabsch + robust refinement with the
 road-surface-normal prior (:func:`register`). User entry points: :func:`build_map` and
 :func:`localize_scan` (one scan), :func:`localize_scans` (a batch over devices),
 :func:`localize_window` (the fused instances of the last scans of a drive, :func:`fuse_scans`),
-:class:`Tracker` (a drive tracked near the odometry prediction, global localization as fallback).
-TripletLoc is one
-configuration away (:func:`tripletloc_config`). Map files and the datasets' readers live in
+:class:`Tracker` (a drive tracked near the odometry prediction, global localization as fallback)
+and :func:`localize_drive` (every scan of a drive or recording, alone, accumulated, tracked or
+both, in one call). TripletLoc is one configuration away (:func:`tripletloc_config`). Map files
+and the datasets' readers (recordings: :func:`jaxloc.io.open_lidar_recording`) live in
 :mod:`jaxloc.io`; building instance maps from a labelled sequence in :mod:`jaxloc.mapping`.
 
 Modules (private; everything public is re-exported here): ``_clusters`` (instances),
@@ -18,6 +19,7 @@ Modules (private; everything public is re-exported here): ``_clusters`` (instanc
 (maximum clique solvers), ``_hypotheses`` (verified clique hypotheses), ``_registration`` (pose),
 ``_config`` / ``_map`` / ``_query`` / ``_localization`` / ``_batch`` (the pipeline),
 ``_accumulation`` (a window of scans fused through odometry), ``_tracking`` (tracking a drive),
+``_drive`` (a whole drive: :func:`localize_drive`),
 ``_evaluation`` (errors and success rates), ``_classes`` and ``_road_normals`` (shared types).
 """
 
@@ -55,6 +57,16 @@ from jaxloc.m2loc._descriptors import (
     describe_map,
     describe_points,
     vertex_descriptor,
+)
+from jaxloc.m2loc._drive import (
+    STATUS_NAMES,
+    DriveConfig,
+    DriveResult,
+    DriveStep,
+    ScanInstances,
+    ScanSource,
+    drive_window,
+    localize_drive,
 )
 from jaxloc.m2loc._evaluation import (
     SUCCESS_RRE_DEG,
@@ -102,6 +114,7 @@ __all__ = [
     "PENDING",
     "POLE",
     "RELOCALIZED",
+    "STATUS_NAMES",
     "SUCCESS_RRE_DEG",
     "SUCCESS_RTE_M",
     "TRACKED",
@@ -111,12 +124,17 @@ __all__ = [
     "WINDOW_MIN_INSTANCES",
     "ClusterConfig",
     "DescriptorConfig",
+    "DriveConfig",
+    "DriveResult",
+    "DriveStep",
     "FusedScans",
     "Instances",
     "LocalizationResult",
     "MapGrid",
     "QueryOutput",
     "RoadNormals",
+    "ScanInstances",
+    "ScanSource",
     "PaddedScan",
     "SmallMapWarning",
     "TrackConfig",
@@ -134,6 +152,7 @@ __all__ = [
     "describe_map",
     "describe_points",
     "describe_query",
+    "drive_window",
     "euclidean_clusters",
     "fit_config_to_map",
     "fuse_instances",
@@ -143,6 +162,7 @@ __all__ = [
     "grid_nearest_same_class",
     "grid_verified_fraction",
     "localization_errors",
+    "localize_drive",
     "localize_scan",
     "localize_scans",
     "localize_window",

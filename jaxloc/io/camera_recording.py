@@ -1,0 +1,151 @@
+"""A camera recording opened for SG2Loc in one call, and its estimated poses written for evo.
+
+:func:`open_camera_recording` is :func:`~jaxloc.io.load_camera_sequence` with the recording's side
+files named as files: the map the recording is localized in (its object embeddings' dimension,
+and its class embeddings for label images), a label table mapping raw label ids to classes, and
+the transform of a 3RScan rescan into its reference scan's frame (``3RScan.json``, or a 4x4 matrix
+file). It returns a :class:`~jaxloc.io.CameraRecording`: the query
+:func:`jaxloc.sg2loc.localize` takes (``sequence``), the ground truth (``poses_gt``, ``tilt_gt``),
+the frames' numbers and timestamps. :func:`write_camera_poses` writes estimated poses in TUM or
+KITTI lines (:func:`camera_pose_matrices`: yaw poses with a tilt as 4x4 ``T_world_cam``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxloc.geometry import yaw_pose_to_se3
+from jaxloc.io._map_file import read_map_file
+from jaxloc.io.camera_frames import read_matrix
+from jaxloc.io.camera_sequence import CameraRecording, load_camera_sequence
+from jaxloc.io.poses import write_kitti, write_tum
+from jaxloc.io.rscan_sequence import read_rescan_transform, scan_id_of
+from jaxloc.io.scannet import read_label_table
+from jaxloc.io.scene_map import FORMAT_NAME, FORMAT_VERSION, load_class_embeddings
+
+
+def _embedding_dim(map_file: Path) -> int:
+    """The dimension of a scene-graph map file's object embeddings (the scene is not built)."""
+    embeddings = read_map_file(map_file, FORMAT_NAME, FORMAT_VERSION, "scene graph").get(
+        "embeddings"
+    )
+    if embeddings is None or embeddings.ndim != 2:
+        raise ValueError(f"{map_file}: no (objects, dims) 'embeddings' array")
+    return int(embeddings.shape[1])
+
+
+def open_camera_recording(
+    path: str | os.PathLike,
+    *,
+    format: str | None = None,
+    map_file: str | os.PathLike | None = None,
+    width: int | None = None,
+    height: int | None = None,
+    embeddings_dir: str | os.PathLike | None = None,
+    labels_dir: str | os.PathLike | None = None,
+    label_table: str | os.PathLike | None = None,
+    label_column: str = "nyu40id",
+    patch_shape: tuple[int, int] = (9, 16),
+    rescan_json: str | os.PathLike | None = None,
+    scan_id: str | None = None,
+    transform: str | os.PathLike | np.ndarray | None = None,
+    odometry: str | os.PathLike | None = None,
+    step: int = 1,
+    max_frames: int | None = None,
+    use_depth: bool = True,
+    use_rgb: bool = True,
+) -> CameraRecording:
+    """Open a camera recording as a query for the map ``map_file`` (see the module docstring).
+
+    Args:
+        path: a ScanNet export folder, a ``.sens`` file or a 3RScan scan (or its ``sequence/``).
+        format: "scannet-export", "sens" or "3rscan" (default: detected).
+        map_file: the scene-graph map (:func:`~jaxloc.io.save_scene`): embedding files must have
+            its dimension, and label images become embeddings with its class embeddings.
+        width, height: the working size (default the images'; one alone keeps the aspect).
+        embeddings_dir: per-frame ``N.npy`` patch embeddings (default ``embeddings/``).
+        labels_dir: per-frame label images ``N.png``, used without an embeddings folder.
+        label_table: a ScanNet label table (``.tsv``) mapping the images' raw ids to classes
+            (``label_column``, default NYU40; :func:`~jaxloc.io.read_label_table`).
+        patch_shape: (rows, cols) of the patch grid made from label images.
+        rescan_json: 3RScan's ``3RScan.json``: the poses of rescan ``scan_id`` (default the
+            folder's name) go to its reference scan's frame.
+        transform: or a (4, 4) rigid transform applied to the poses (an array or a text file of
+            four rows of four numbers).
+        odometry: a camera-to-odometry pose file for the ego-motion and tilt (default
+            ``odometry.txt`` beside the frames, when present).
+        step: every ``step``-th frame; max_frames: at most this many frames.
+        use_depth, use_rgb: read the depth and colour images into the query.
+
+    Returns:
+        A :class:`~jaxloc.io.CameraRecording`.
+
+    Raises:
+        FileNotFoundError, ValueError: naming the file, as
+            :func:`~jaxloc.io.load_camera_sequence`; both ``rescan_json`` and ``transform``; a
+            ``patch_shape`` below 1; label images without a ``map_file`` holding class embeddings.
+    """
+    if rescan_json is not None and transform is not None:
+        raise ValueError("give rescan_json or transform, not both")
+    if min(patch_shape) < 1:
+        raise ValueError(f"patch_shape must be >= 1, got {list(patch_shape)}")
+    if isinstance(transform, str | os.PathLike):
+        transform = read_matrix(transform)
+    elif rescan_json is not None:
+        transform = read_rescan_transform(rescan_json, scan_id or scan_id_of(path))
+    label_map = None
+    if label_table is not None:
+        table = read_label_table(label_table, label_column, key="id")
+        label_map = {int(k): v for k, v in table.items() if k.isdigit()}
+    dim = classes = None
+    if map_file is not None:
+        dim = _embedding_dim(Path(map_file))
+        classes = load_class_embeddings(map_file) if labels_dir is not None else None
+    return load_camera_sequence(
+        path,
+        format,
+        width,
+        height,
+        embedding_dim=dim,
+        embeddings_dir=embeddings_dir,
+        labels_dir=labels_dir,
+        classes=classes,
+        label_map=label_map,
+        patch_shape=tuple(patch_shape),
+        transform=transform,
+        odometry=odometry,
+        step=step,
+        max_frames=max_frames,
+        use_depth=use_depth,
+        use_rgb=use_rgb,
+    )
+
+
+def camera_pose_matrices(poses: np.ndarray, tilt: np.ndarray) -> np.ndarray:
+    """(T, 4, 4) float64 ``T_world_cam`` of (T, 4) yaw poses ``(x, y, z, yaw)`` with their
+    (T, 2) ``(pitch, roll)`` tilt (:func:`jaxloc.geometry.yaw_pose_to_se3`)."""
+    se3 = jax.vmap(yaw_pose_to_se3)(jnp.asarray(poses, jnp.float32), jnp.asarray(tilt))
+    return np.asarray(se3.as_matrix(), np.float64).reshape(-1, 4, 4)
+
+
+def write_camera_poses(
+    path: str | os.PathLike, recording: CameraRecording, poses: np.ndarray, format: str = "tum"
+) -> None:
+    """Write estimated camera-to-world poses of a recording's frames for evo (atomically): the
+    (T, 4) yaw poses with the frames' known tilt (``recording.sequence.tilt``), as TUM lines (the
+    frame's timestamp in seconds, else its number) or KITTI lines (one 3x4 per frame)."""
+    matrices = camera_pose_matrices(poses, recording.sequence.tilt)
+    if format == "kitti":
+        write_kitti(path, matrices)
+        return
+    if format != "tum":
+        raise ValueError(f"format must be 'tum' or 'kitti', got {format!r}")
+    stamps = recording.timestamps
+    if stamps is None:
+        stamps = np.asarray(recording.frame_ids, np.float64)
+    write_tum(path, matrices, stamps)

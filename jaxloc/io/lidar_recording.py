@@ -1,0 +1,327 @@
+"""Every LiDAR recording jaxloc reads, as one :class:`LidarRecording`: its scans in order, their
+stamps and poses, each scan read on demand.
+
+:func:`open_lidar_recording` takes a path or a list of paths, each one of:
+
+* a sequence folder in any layout of :func:`~jaxloc.io.load_lidar_sequence` (SemanticKITTI,
+  plain, HeLiPR / TripletLoc; ``layout``, ``sensor``): every ``every``-th of its scans, with their
+  timestamps and poses when the folder has them;
+* ``NAME.bin``, a SemanticKITTI scan with ``NAME.label`` beside it or in ``../labels/`` (the
+  dataset's layout), or a HeLiPR ``SEQ/LiDAR/<sensor>/<stamp>.bin`` with ``SEQ/labels/`` (its
+  stamp kept);
+* ``NAME.txt``, instance centroids already extracted: lines ``class_id x y z`` (scan frame, metres;
+  ``#`` starts a comment; :func:`load_centroid_scan`);
+* a folder with ``instances/<class>.txt``, a scan in the map's own format
+  (:func:`~jaxloc.io.load_instance_map`).
+
+``gt=FILE`` replaces the poses by a pose file's (KITTI, 4x4 or TUM / HeLiPR lines,
+:func:`~jaxloc.io.read_pose_file`): by time when the file and every scan have timestamps (exact
+for nanoseconds, within 1 ms for seconds; a scan without a pose at its time gets none), else line
+i for the i-th scan (the counts must agree); :meth:`LidarRecording.with_poses` does the same for
+an odometry file. Labelled scans become instance centroids with TripletLoc's recipe
+(:func:`jaxloc.m2loc.cluster_instances`). Cheap checks (files present, formats known, labels
+found) run when the recording is opened, so a bad argument fails before any work.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from jaxloc.io import helipr
+from jaxloc.io._text import data_lines
+from jaxloc.io.instance_maps import load_instance_map
+from jaxloc.io.lidar_sequence import (
+    LidarSequence,
+    assign_poses,
+    is_sequence_dir,
+    load_lidar_sequence,
+    load_sequence_scan,
+)
+from jaxloc.io.poses import read_pose_file, write_kitti, write_tum
+from jaxloc.io.semantickitti import LabelledScan, load_semantickitti_scan
+from jaxloc.m2loc import GRAPH_CLASSES, ScanInstances, cluster_instances
+
+#: Suffix of an instance-centroid scan file (lines ``class_id x y z``).
+CENTROID_SUFFIX = ".txt"
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LidarRecording:
+    """A LiDAR recording: N scans in order, read one at a time (a
+    :class:`jaxloc.m2loc.ScanSource`, what :func:`jaxloc.m2loc.localize_drive` reads).
+
+    Attributes:
+        paths: per scan its file (``.bin``, centroid ``.txt``) or instance-map folder.
+        numbers: per scan its number: its index in its sequence folder, else its position among
+            the scans.
+        stamps: per scan its time in integer nanoseconds (HeLiPR names, ``times.txt``), or None.
+        poses: (N, 4, 4) float64 ``T_map_scan`` of the LiDAR (identity where a scan has none), or
+            None when no scan has one.
+        has_pose: (N,) bool, the scans ``poses`` holds a pose for.
+        sequences: the sequence folders the scans come from
+            (:class:`~jaxloc.io.LidarSequence`: layout, sensor, scans left out without a pose).
+        sources: per scan the index of its sequence in ``sequences``, or -1 for a scan given alone.
+    """
+
+    paths: tuple[Path, ...]
+    numbers: tuple[int, ...]
+    stamps: tuple[int | None, ...]
+    poses: np.ndarray | None
+    has_pose: np.ndarray
+    sequences: tuple[LidarSequence, ...] = ()
+    sources: tuple[int, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    @property
+    def timestamps(self) -> np.ndarray | None:
+        """(N,) int64 nanoseconds, or None unless every scan has a stamp."""
+        if None in self.stamps:
+            return None
+        return np.asarray(self.stamps, np.int64)
+
+    def name(self, index: int) -> str:
+        """The scan's path, as errors name it."""
+        return str(self.paths[index])
+
+    def scan(self, index: int) -> LabelledScan:
+        """Scan ``index``'s labelled points (class ids, sensor frame).
+
+        Raises:
+            FileNotFoundError, ValueError: naming the file (a missing or malformed scan or label
+                file; a scan given as instance centroids, which has no points).
+        """
+        path, source = self.paths[index], self.sources[index]
+        if source >= 0:
+            return load_sequence_scan(self.sequences[source], self.numbers[index])
+        _check_scan_file(path)
+        if path.is_dir() or path.suffix != ".bin":
+            raise ValueError(f"{path}: instance centroids, not a labelled point scan")
+        found = helipr.helipr_scan_label(path)
+        if found is not None:
+            return helipr.load_helipr_scan(path, found[1], found[0])
+        return load_semantickitti_scan(path, _label_path(path))
+
+    def instances(self, index: int, classes: Sequence[int] = GRAPH_CLASSES) -> ScanInstances:
+        """Scan ``index``'s instance centroids of ``classes``: clustered from its labelled points
+        (TripletLoc's recipe), or read from its centroid file or instance-map folder.
+
+        Raises:
+            FileNotFoundError, ValueError: naming the file (as :meth:`scan`; a centroid file's
+                malformed lines or class ids outside ``classes``).
+        """
+        path = self.paths[index]
+        if self.sources[index] < 0 and (path.is_dir() or path.suffix != ".bin"):
+            _check_scan_file(path)
+            if path.is_dir():
+                found = load_instance_map(path, tuple(classes))
+                return ScanInstances(found.points, found.labels)
+            return ScanInstances(*load_centroid_scan(path, classes))
+        scan = self.scan(index)
+        found = cluster_instances(scan.points, scan.labels)
+        return ScanInstances(found.points, found.labels)
+
+    def with_poses(self, path: str | os.PathLike) -> LidarRecording:
+        """The recording with the poses of a pose file instead of its own (matched as ``gt=``;
+        see the module docstring).
+
+        Raises:
+            FileNotFoundError: no such file.
+            ValueError: naming the file: malformed or non-rigid poses, another pose count (by
+                order), or no scan matched by time.
+        """
+        timed = self.timestamps
+        found = read_pose_file(path)
+        if (found.timestamps is None or timed is None) and len(found.poses) != len(self):
+            raise ValueError(f"{path}: {len(found.poses)} poses for {len(self)} scan(s)")
+        poses, matched, _ = assign_poses(found, timed, len(self), path)
+        return dataclasses.replace(self, poses=poses, has_pose=matched)
+
+
+def _label_path(bin_path: Path) -> Path:
+    """The ``.label`` of a SemanticKITTI ``.bin``: beside it, or in ``../labels/`` (the dataset's
+    ``velodyne/`` + ``labels/`` layout)."""
+    beside = bin_path.with_suffix(".label")
+    if beside.exists():
+        return beside
+    dataset_layout = bin_path.parent.parent / "labels" / beside.name
+    if dataset_layout.exists():
+        return dataset_layout
+    raise FileNotFoundError(f"{bin_path}: no label file (looked for {beside} and {dataset_layout})")
+
+
+def _check_scan_file(path: Path) -> None:
+    """The cheap checks of a scan given alone: it exists, its format is known, a ``.bin`` has
+    labels."""
+    if not path.exists():
+        raise FileNotFoundError(f"missing scan: {path}")
+    if path.is_dir():
+        return
+    if path.suffix == ".bin":
+        found = helipr.helipr_scan_label(path)
+        if found is None:
+            _label_path(path)
+        elif not found[1].is_file():
+            raise FileNotFoundError(f"{path}: no label file (looked for {found[1]})")
+    elif path.suffix != CENTROID_SUFFIX:
+        raise ValueError(
+            f"{path}: unknown scan format (expected .bin + .label, a {CENTROID_SUFFIX} "
+            "centroid file, or a folder with instances/<class>.txt)"
+        )
+
+
+def load_centroid_scan(
+    path: str | os.PathLike, classes: Sequence[int] = GRAPH_CLASSES
+) -> tuple[np.ndarray, np.ndarray]:
+    """Read an instance-centroid scan file: lines ``class_id x y z`` (scan frame, metres; ``#``
+    starts a comment).
+
+    Returns (N, 3) float64 points and (N,) int64 class ids.
+
+    Raises:
+        ValueError: naming the file (and line): not UTF-8 text, a wrong field count, a
+            non-number or NaN/inf, non-integer or unknown class ids.
+    """
+    rows = []
+    for line_number, line in data_lines(path, comments=True):
+        fields = line.split()
+        if len(fields) != 4:
+            raise ValueError(
+                f"{path}:{line_number}: expected 4 numbers (class_id x y z), got {len(fields)}"
+            )
+        try:
+            values = np.array([float(field) for field in fields])
+        except ValueError:
+            raise ValueError(f"{path}:{line_number}: not a number in {line[:60]!r}") from None
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"{path}:{line_number}: non-finite value in {line[:60]!r}")
+        rows.append(values)
+    table = np.asarray(rows, np.float64).reshape(-1, 4)
+    labels = table[:, 0]
+    if np.any(labels != np.round(labels)):
+        raise ValueError(f"{path}: class ids (first column) must be integers")
+    unknown = sorted(set(labels.astype(int).tolist()) - set(classes))
+    if unknown:
+        raise ValueError(f"{path}: unknown class ids {unknown}; expected some of {list(classes)}")
+    return table[:, 1:4], labels.astype(np.int64)
+
+
+def _is_sequence(path: Path, layout: str | None) -> bool:
+    if not path.is_dir() or (path / "instances").is_dir():
+        return False
+    return layout is not None or is_sequence_dir(path)
+
+
+def open_lidar_recording(
+    path: str | os.PathLike | Sequence[str | os.PathLike],
+    *,
+    layout: str | None = None,
+    sensor: str | None = None,
+    every: int = 1,
+    gt: str | os.PathLike | None = None,
+) -> LidarRecording:
+    """Open a LiDAR recording: a sequence folder, a scan file or a list of them (see the module
+    docstring). Nothing is read but the file lists, stamps, poses and calibration.
+
+    Args:
+        path: a path or a list of paths (sequence folders, scans), in order.
+        layout: the layout of sequence folders ("semantickitti", "plain", "helipr"; default
+            detected); given, any folder without ``instances/`` is read as a sequence.
+        sensor: the HeLiPR scan folder (``LiDAR/<sensor>/``; default the only one, else Ouster).
+        every: of a sequence folder, every ``every``-th scan.
+        gt: a pose file that replaces the poses (:meth:`LidarRecording.with_poses`).
+
+    Returns:
+        A :class:`LidarRecording`.
+
+    Raises:
+        FileNotFoundError, ValueError: naming the file: a missing scan, folder or label file, an
+            unknown scan format, a HeLiPR scan not named by its stamp, any error of
+            :func:`~jaxloc.io.load_lidar_sequence` or of the pose file.
+    """
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    paths = [path] if isinstance(path, str | os.PathLike) else list(path)
+    scans, numbers, stamps, poses, sources = [], [], [], [], []
+    sequences: list[LidarSequence] = []
+    for item in map(Path, paths):
+        if not _is_sequence(item, layout):
+            _check_scan_file(item)
+            found = helipr.helipr_scan_label(item)
+            scans.append(item)
+            numbers.append(len(numbers))
+            stamps.append(None if found is None else helipr.scan_stamp(item))
+            poses.append(None)
+            sources.append(-1)
+            continue
+        sequence = load_lidar_sequence(item, False, layout, sensor)
+        for index in range(0, len(sequence.bins), every):
+            scans.append(sequence.bins[index])
+            numbers.append(index)
+            stamps.append(None if sequence.timestamps is None else int(sequence.timestamps[index]))
+            poses.append(None if sequence.T_map_scan is None else sequence.T_map_scan[index])
+            sources.append(len(sequences))
+        sequences.append(sequence)
+    has_pose = np.array([pose is not None for pose in poses], bool)
+    stacked = None
+    if has_pose.any():
+        stacked = np.stack([np.eye(4) if pose is None else pose for pose in poses])
+    recording = LidarRecording(
+        tuple(scans),
+        tuple(numbers),
+        tuple(stamps),
+        stacked,
+        has_pose,
+        tuple(sequences),
+        tuple(sources),
+    )
+    return recording if gt is None else recording.with_poses(gt)
+
+
+def write_lidar_poses(
+    path: str | os.PathLike,
+    recording: LidarRecording,
+    poses: np.ndarray,
+    valid: np.ndarray,
+    format: str = "tum",
+) -> int:
+    """Write estimated ``T_map_scan`` of a recording's scans for evo (atomically).
+
+    ``format="tum"``: lines ``t x y z qx qy qz qw`` of the VALID scans only (``t`` the scan's
+    stamp in seconds, exact to the nanosecond, or its number where it has none), which evo then
+    associates with a reference by time; ``"kitti"``: 12 numbers (3x4) per scan, every scan in
+    order, invalid ones with the pose given for them, since KITTI files are matched line by line.
+
+    Args:
+        path: the file to write.
+        recording: the scans (their stamps and numbers).
+        poses: (N, 4, 4) poses, one per scan; valid: (N,) bool.
+        format: "tum" or "kitti".
+
+    Returns:
+        The number of scans left out (TUM: the invalid ones; KITTI: 0).
+    """
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+    valid = np.asarray(valid, bool)
+    if len(poses) != len(recording) or valid.shape != (len(recording),):
+        raise ValueError(f"need one pose and flag per scan ({len(recording)}), got {len(poses)}")
+    if format == "kitti":
+        write_kitti(path, poses)
+        return 0
+    if format != "tum":
+        raise ValueError(f"format must be 'tum' or 'kitti', got {format!r}")
+    stamps = np.array(
+        [
+            n * 10**9 if t is None else t
+            for n, t in zip(recording.numbers, recording.stamps, strict=True)
+        ],
+        np.int64,
+    )
+    write_tum(path, poses[valid], stamps[valid])
+    return int((~valid).sum())
