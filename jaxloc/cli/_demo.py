@@ -21,6 +21,47 @@ def demo_episode_config(args: argparse.Namespace):
     )
 
 
+#: The demo's strides unless ``--strides`` is given: the paper's (20, 8, 4), each lowered where a
+#: small image would give its round fewer rays per side than SSIM's window.
+PAPER_STRIDES = (20, 8, 4)
+
+
+def ray_grid_shape(stride: int, width: int, height: int) -> tuple[int, int]:
+    """(rows, cols) of the ray grid of ``jaxloc.stride_grid`` at ``stride`` on a width x height
+    image."""
+    return len(range(stride // 2, height, stride)), len(range(stride // 2, width, stride))
+
+
+def fitting_strides(args: argparse.Namespace) -> tuple[int, ...]:
+    """The rounds' strides for ``args.width x args.height``: ``--strides`` as given (an
+    InputError naming the largest stride that fits if one gives fewer than 7 x 7 rays), else the
+    paper's, each lowered to the largest stride that fits."""
+    from jaxloc.cli._errors import InputError
+    from jaxloc.sg2loc.scores import SSIM_WINDOW
+
+    def fits(stride: int) -> bool:
+        return min(ray_grid_shape(stride, args.width, args.height)) >= SSIM_WINDOW
+
+    largest = next((s for s in range(max(PAPER_STRIDES), 0, -1) if fits(s)), None)
+    if largest is None:
+        raise InputError(
+            f"--width {args.width} --height {args.height}: the image is too small for the colour "
+            f"score's {SSIM_WINDOW} x {SSIM_WINDOW} SSIM window (want at least {SSIM_WINDOW} px "
+            "per side)"
+        )
+    if args.strides is None:
+        return tuple(min(s, largest) for s in PAPER_STRIDES)
+    too_coarse = [s for s in args.strides if not fits(s)]
+    if too_coarse:
+        rows, cols = ray_grid_shape(too_coarse[0], args.width, args.height)
+        raise InputError(
+            f"--strides: stride {too_coarse[0]} gives a {rows} x {cols} ray grid at "
+            f"{args.width} x {args.height}, smaller than SSIM's {SSIM_WINDOW} x {SSIM_WINDOW} "
+            f"window; use strides of at most {largest}"
+        )
+    return tuple(args.strides)
+
+
 def run_demo(args: argparse.Namespace) -> int:
     import jax
 
@@ -32,6 +73,13 @@ def run_demo(args: argparse.Namespace) -> int:
     from jaxloc.sg2loc.resampling import KLDConfig
     from jaxloc.synthetic import indoor
 
+    strides = fitting_strides(args)
+    if args.strides is None and strides != PAPER_STRIDES:
+        shown = ",".join(map(str, strides))
+        print(
+            f"strides {shown} (the paper's 20,8,4, lowered to fit a "
+            f"{args.width} x {args.height} image)"
+        )
     start = time.perf_counter()
     episode = indoor.make_episode(args.seed, args.frames, demo_episode_config(args))
     scene = episode.scene
@@ -42,7 +90,7 @@ def run_demo(args: argparse.Namespace) -> int:
         f"({time.perf_counter() - start:.1f} s to build)"
     )
     camera = episode.sequence.camera
-    grid = stride_grid(camera, 10, *episode.sequence.patch_shape)
+    grid = stride_grid(camera, min(10, strides[0]), *episode.sequence.patch_shape)
     num_views = min(3, args.frames)
     views = jax.jit(render_batch)(
         scene, jax.numpy.asarray(episode.poses_gt[:num_views]), camera, grid
@@ -57,15 +105,17 @@ def run_demo(args: argparse.Namespace) -> int:
         )
     sg2loc_config = SG2LocConfig(
         capacity=args.particles,
-        strides=args.strides,
+        strides=strides,
         kld=KLDConfig(min_particles=min(500, args.particles), max_particles=args.particles),
     )
     result = localize(
         jax.random.key(args.seed), scene, episode.sequence, sg2loc_config, progress=True
     )
     pos_err, rot_err = yaw_pose_errors(np.asarray(result.poses), episode.poses_gt)
+    localized = np.asarray(result.localized)
     for t, (p, r) in enumerate(zip(pos_err, rot_err, strict=True)):
-        print(f"frame {t + 1}: position error {p:.3f} m, rotation error {r:.2f} deg")
+        verdict = "localized" if localized[t] else "not localized"
+        print(f"frame {t + 1}: {verdict}, position error {p:.3f} m, rotation error {r:.2f} deg")
     summary = summarize(pos_err[-1:], rot_err[-1:])
     print(
         f"last frame: {summary['median_pos_m']:.3f} m, {summary['median_rot_deg']:.2f} deg; "

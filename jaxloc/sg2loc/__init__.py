@@ -9,6 +9,8 @@ paper's coarse-to-fine rounds over a query :class:`Sequence`. The stages, one mo
 * :mod:`~jaxloc.sg2loc.scores`: semantic, depth and SSIM colour scores and the likelihood.
 * :mod:`~jaxloc.sg2loc.resampling`: stratified / systematic resampling and KLD-sampling.
 * :mod:`~jaxloc.sg2loc.filter`: one jitted filter step and passes over a sequence.
+* :mod:`~jaxloc.sg2loc.verdict`: whether a frame is localized (computed inside the step).
+* :mod:`~jaxloc.sg2loc.online`: the filter on a stream of frames (``init`` / ``update``).
 * :mod:`~jaxloc.sg2loc.localization`: the coarse-to-fine rounds (:func:`localize`).
 * :mod:`~jaxloc.sg2loc.refine`: Gauss-Newton / Levenberg-Marquardt 6-DoF pose refinement.
 * :mod:`~jaxloc.sg2loc.learn`: learning the likelihood parameters by gradient.
@@ -26,12 +28,14 @@ from jaxloc._lazy import lazy_exports
 _EXPORTS = {
     "filter": "",
     "learn": "",
+    "online": "",
     "particles": "",
     "refine": "",
     "resampling": "",
     "retrieval": "",
     "scores": "",
     "sharded": "",
+    "verdict": "",
     "SG2LocConfig": "localization",
     "SG2LocResult": "localization",
     "carry_back": "localization",
@@ -47,12 +51,14 @@ if TYPE_CHECKING:  # the lazy names, for type checkers and the API reference
     from jaxloc.sg2loc import (
         filter,
         learn,
+        online,
         particles,
         refine,
         resampling,
         retrieval,
         scores,
         sharded,
+        verdict,
     )
     from jaxloc.sg2loc.localization import SG2LocConfig, SG2LocResult, carry_back, localize
     from jaxloc.sg2loc.rendering import Render, render, render_batch
@@ -67,6 +73,7 @@ __all__ = [
     "filter",
     "learn",
     "localize",
+    "online",
     "particles",
     "refine",
     "render",
@@ -75,4 +82,5 @@ __all__ = [
     "retrieval",
     "scores",
     "sharded",
+    "verdict",
 ]

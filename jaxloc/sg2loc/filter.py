@@ -37,8 +37,15 @@ from jaxloc.sg2loc.particles import (
 )
 from jaxloc.sg2loc.rendering import render_batch
 from jaxloc.sg2loc.resampling import KLDConfig, kld_resample
-from jaxloc.sg2loc.scores import ObservationConfig, Scores, match_patches, particle_log_likelihood
+from jaxloc.sg2loc.scores import (
+    SSIM_WINDOW,
+    ObservationConfig,
+    Scores,
+    match_patches,
+    particle_log_likelihood,
+)
 from jaxloc.sg2loc.sequence import Sequence
+from jaxloc.sg2loc.verdict import Verdict, VerdictConfig, judge
 
 
 class Region(eqx.Module):
@@ -91,6 +98,7 @@ class StepConfig(eqx.Module):
             active count and its peak memory ``particle_chunk`` x rays per particle. ``None``
             picks ``CHUNK_RAYS // rays per particle`` (at least 1); a value >= the particle
             capacity renders every slot at once (no loop).
+        verdict: the thresholds of the per-frame verdict (:mod:`jaxloc.sg2loc.verdict`).
         mesh: a 1-D device mesh the particle buffer is split over (static; set by
             :mod:`jaxloc.sharding` and ``localize(..., mesh=)``). Each device then renders and
             scores its own shard (``jax.shard_map``), calling the engine on its own rays, with its
@@ -109,11 +117,19 @@ class StepConfig(eqx.Module):
     heights: Array = eqx.field(default=PAPER_HEIGHTS, converter=as_float32)
     engine: str = eqx.field(static=True, default="auto")
     particle_chunk: int | None = eqx.field(static=True, default=None)
+    verdict: VerdictConfig = VerdictConfig()
     mesh: Mesh | None = eqx.field(static=True, default=None)
 
     def __check_init__(self) -> None:
         check_engine_name(self.engine)
         check_particle_chunk(self.particle_chunk)
+        h, w = self.grid.shape
+        if self.observation.use_color and min(h, w) < SSIM_WINDOW:
+            raise ValueError(
+                f"the colour score's SSIM needs a ray grid of at least {SSIM_WINDOW} x "
+                f"{SSIM_WINDOW} rays, but this one is {h} x {w} (image {self.camera.width} x "
+                f"{self.camera.height}): use a smaller stride or turn the colour score off"
+            )
 
     def chunk_size(self, capacity: int) -> int:
         """Particles per chunk for a buffer of ``capacity`` slots (static)."""
@@ -156,6 +172,8 @@ class StepInfo(NamedTuple):
         semantic, depth, color, log_likelihood: the MLE particle's scores.
         particles: (N, 4) particle poses after the update (before resampling).
         particle_weights: (N,) their normalised weights (0 for inactive slots).
+        verdict: the frame's :class:`~jaxloc.sg2loc.verdict.Verdict` (``verdict.localized``:
+            act on ``mle``), from the weighted particles and the MLE's scores.
     """
 
     mle: Array
@@ -170,20 +188,28 @@ class StepInfo(NamedTuple):
     log_likelihood: Array
     particles: Array
     particle_weights: Array
+    verdict: Verdict
+
+
+def grid_pixels(camera: Camera, grid: RayGrid) -> tuple[np.ndarray, np.ndarray]:
+    """The image pixel (row, column) of every ray of ``grid``: two (R,) int arrays (host side), the
+    nearest pixel centre, clipped to the image."""
+    uv = np.asarray(grid.uv)
+    cols = np.clip(np.rint(uv[:, 0]).astype(int), 0, camera.width - 1)
+    rows = np.clip(np.rint(uv[:, 1]).astype(int), 0, camera.height - 1)
+    return rows, cols
 
 
 def frames_on_grid(sequence: Sequence, grid: RayGrid) -> Frame:
     """All frames of a sequence sampled on a ray grid, stacked with a leading T axis (host side)."""
     num_frames = sequence.num_frames
     camera = sequence.camera
-    uv = np.asarray(grid.uv)
-    cols = np.clip(np.rint(uv[:, 0]).astype(int), 0, camera.width - 1)
-    rows = np.clip(np.rint(uv[:, 1]).astype(int), 0, camera.height - 1)
+    rows, cols = grid_pixels(camera, grid)
     h, w = grid.shape
     if sequence.depth is not None:
         depth = sequence.depth[:, rows, cols]
     else:
-        depth = np.zeros((num_frames, uv.shape[0]), np.float32)
+        depth = np.zeros((num_frames, rows.shape[0]), np.float32)
     if sequence.rgb is not None:
         rgb = sequence.rgb[:, rows, cols].reshape(num_frames, h, w, 3)
     else:
@@ -313,6 +339,9 @@ def step(
     state, degenerate = update_weights(state, log_likelihood)
     best_pose, best = mle(state)
     mean_pose = weighted_mean(state)
+    best_scores = jax.tree.map(lambda a: a[best], scores)
+    match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
+    verdict = judge(state, best_scores, match, config.observation, config.verdict, degenerate)
 
     weighted = state
     state, kld_info = kld_resample(key_resample, state, config.kld)
@@ -329,12 +358,13 @@ def step(
         num_bins=kld_info.num_bins,
         degenerate=degenerate,
         motion_valid=motion_valid,
-        semantic=scores.semantic[best],
-        depth=scores.depth[best],
-        color=scores.color[best],
-        log_likelihood=scores.log_likelihood[best],
+        semantic=best_scores.semantic,
+        depth=best_scores.depth,
+        color=best_scores.color,
+        log_likelihood=best_scores.log_likelihood,
         particles=weighted.poses,
         particle_weights=jnp.where(weighted.active, jnp.exp(weighted.log_weights), 0.0),
+        verdict=verdict,
     )
     return state, info
 
@@ -344,13 +374,12 @@ def run_pass(
 ) -> tuple[ParticleState, StepInfo]:
     """Filter a whole sequence (``frames`` stacked on a leading T axis) with ``lax.scan``.
 
-    Returns the final state and the per-frame :class:`StepInfo` stacked on a leading T axis.
+    Frame ``t`` steps with the key ``jax.random.fold_in(key, frames.index[t])``, as a stream of
+    frames does (:mod:`jaxloc.sg2loc.online`). Returns the final state and the per-frame
+    :class:`StepInfo` stacked on a leading T axis.
     """
-    num_frames = frames.index.shape[0]
-    keys = jax.random.split(key, num_frames)
 
-    def body(carry, inputs):
-        frame_key, frame = inputs
-        return step(frame_key, carry, frame, scene, config)
+    def body(carry, frame):
+        return step(jax.random.fold_in(key, frame.index), carry, frame, scene, config)
 
-    return jax.lax.scan(body, state, (keys, frames))
+    return jax.lax.scan(body, state, frames)

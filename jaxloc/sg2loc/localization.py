@@ -38,6 +38,7 @@ from jaxloc.sg2loc.particles import DEFAULT_BOX_YAW_HALF_RANGE, PAPER_HEIGHTS, i
 from jaxloc.sg2loc.resampling import KLDConfig
 from jaxloc.sg2loc.scores import ObservationConfig
 from jaxloc.sg2loc.sequence import Sequence
+from jaxloc.sg2loc.verdict import VerdictConfig
 from jaxloc.sharding import check_divisible, pin_split
 
 
@@ -63,6 +64,8 @@ class SG2LocConfig(eqx.Module):
             see :func:`jaxloc.raycast`).
         particle_chunk: particles rendered together (static; ``StepConfig.particle_chunk``:
             None sizes chunks to ``jaxloc.sg2loc.filter.CHUNK_RAYS`` rays).
+        verdict: thresholds of the per-frame verdict
+            (:class:`~jaxloc.sg2loc.verdict.VerdictConfig`).
     """
 
     capacity: int = eqx.field(static=True, default=2500)
@@ -81,6 +84,7 @@ class SG2LocConfig(eqx.Module):
     )
     engine: str = eqx.field(static=True, default="auto")
     particle_chunk: int | None = eqx.field(static=True, default=None)
+    verdict: VerdictConfig = VerdictConfig()
 
     def __check_init__(self):
         check_engine_name(self.engine)
@@ -107,6 +111,9 @@ class SG2LocResult(NamedTuple):
 
     Attributes:
         poses: (T, 4) the final round's MLE at every frame, (x, y, z, yaw).
+        localized: (T,) bool, the final round's verdict at every frame: act on ``poses[t]`` only
+            where it is True (:mod:`jaxloc.sg2loc.verdict`; what it is made of:
+            ``info.verdict``).
         round_mle: (R, T, 4) every round's per-frame MLE.
         round_start: (R, 4) the centre each round was initialised around (round 0: NaN).
         num_particles: (R, T) int32 particles after KLD resampling.
@@ -117,6 +124,7 @@ class SG2LocResult(NamedTuple):
     """
 
     poses: Array
+    localized: Array
     round_mle: Array
     round_start: Array
     num_particles: Array
@@ -169,10 +177,10 @@ def _round_with_progress(key, init_args, frames, scene, step_config, capacity, m
     """The same computation as :func:`_round`, one jitted step per frame, updating ``bar``."""
     key_init, key_run = jax.random.split(key)
     state = _jit_initial_state(key_init, init_args, step_config, capacity, mesh)
-    num_frames = frames.index.shape[0]
     infos = []
-    for frame_key, t in zip(jax.random.split(key_run, num_frames), range(num_frames), strict=True):
+    for t in range(frames.index.shape[0]):
         frame = jax.tree.map(lambda a, t=t: a[t], frames)
+        frame_key = jax.random.fold_in(key_run, frame.index)
         state, info = _jit_step(frame_key, state, frame, scene, step_config, mesh)
         infos.append(info)
         bar.update(1)
@@ -245,6 +253,7 @@ def localize(
             heights=config.heights,
             engine=config.engine,
             particle_chunk=config.particle_chunk,
+            verdict=config.verdict,
             mesh=mesh,
         )
         init_args = (
@@ -268,6 +277,7 @@ def localize(
         bar.close()
     return SG2LocResult(
         poses=info.mle,
+        localized=info.verdict.localized,
         round_mle=jnp.stack(round_mle),
         round_start=jnp.stack(starts),
         num_particles=jnp.stack(counts),

@@ -21,7 +21,9 @@ furniture moved or removed), walks a camera through the changed room and simulat
 per-patch SceneGraphLoc embeddings (the patch's dominant object's embedding at cosine
 ``cosine_range``, confused with another object at ``confusion_rate``), depth (relative noise,
 blob holes = 0), RGB (exposure, noise) and noisy ego-motion. The map the filter uses is the
-unchanged room (:attr:`Episode.scene`).
+unchanged room (:attr:`Episode.scene`). A look-alike wrong place
+(:func:`make_lookalike_episode`) walks another room whose objects carry the map's embeddings of
+their class: the negatives of SG2Loc's verdict.
 """
 
 from jaxloc.synthetic.indoor.config import (
@@ -32,6 +34,7 @@ from jaxloc.synthetic.indoor.config import (
     TrajectoryConfig,
 )
 from jaxloc.synthetic.indoor.export import write_scannet_export
+from jaxloc.synthetic.indoor.lookalike import make_lookalike_episode
 from jaxloc.synthetic.indoor.merge import MergedRooms, merge_rooms
 from jaxloc.synthetic.indoor.rooms import (
     CLASS_NAMES,
@@ -58,6 +61,7 @@ __all__ = [
     "TrajectoryConfig",
     "change_room",
     "make_episode",
+    "make_lookalike_episode",
     "make_room",
     "merge_rooms",
     "object_embeddings",

@@ -259,6 +259,10 @@ class Episode:
         poses_gt: (T, 4) float32 true camera poses (x, y, z, yaw).
         patch_objects: (T, rows, cols) int32 the map object dominating each patch (-1: none).
         confused: (T, rows, cols) bool, patches whose embedding came from another object.
+        in_map: False for a look-alike wrong place
+            (:func:`~jaxloc.synthetic.indoor.lookalike.make_lookalike_episode`): the frames come
+            from a room that is not the map, so no pose in the map is right; ``poses_gt``,
+            ``changes`` and ``patch_objects`` then refer to that room (``query_room``).
     """
 
     room: Room
@@ -268,6 +272,7 @@ class Episode:
     poses_gt: np.ndarray
     patch_objects: np.ndarray
     confused: np.ndarray
+    in_map: bool = True
 
     @functools.cached_property
     def scene(self) -> SceneGraph:
@@ -285,6 +290,16 @@ def make_episode(seed: int, num_frames: int, config: EpisodeConfig | None = None
         raise ValueError(f"num_frames must be a positive int, got {num_frames!r}")
     config = config or EpisodeConfig()
     room = make_room(seed, config.room)
+    return episode_in_room(room, room, seed, num_frames, config)
+
+
+def episode_in_room(
+    map_room: Room, room: Room, seed: int, num_frames: int, config: EpisodeConfig
+) -> Episode:
+    """The episode of :func:`make_episode` walked through ``room`` (changed, then rendered, its
+    patches embedded with ``room.embeddings``) and localized against ``map_room``: the same room
+    for :func:`make_episode`, another one for a look-alike wrong place
+    (:func:`~jaxloc.synthetic.indoor.lookalike.make_lookalike_episode`)."""
     change_rng, path_rng, sensor_rng = (
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3)
     )
@@ -314,4 +329,5 @@ def make_episode(seed: int, num_frames: int, config: EpisodeConfig | None = None
         rgb=frames.sensor_rgb(sensor_rng, color, s.rgb_noise, s.exposure_sigma),
         tilt=tilts,
     )
-    return Episode(room, query_room, changes, sequence, poses, dominant, confused)
+    in_map = map_room is room
+    return Episode(map_room, query_room, changes, sequence, poses, dominant, confused, in_map)

@@ -1,0 +1,137 @@
+"""Latency per frame of the streaming SG2Loc filter (:func:`jaxloc.sg2loc.online.update`) beside
+the bare jitted filter step on the same frames, in the same run.
+
+For each image size (default 320x180 and 960x540, the paper's), a synthetic episode of the
+default room and sensor settings; the stream runs at the paper's 2500 particles and the coarse
+stride 20 (``OnlineConfig`` defaults). Per frame, wall clock until the estimate is ready:
+
+* ``update``: what a user's loop waits for: the inputs' checks and transfers, the compiled step
+  with the verdict and the relocalization policy, the new state;
+* ``step``: :func:`jaxloc.sg2loc.filter.step` alone, jitted, on the same frames and particles (the
+  peer: the per-frame cost of one round of :func:`jaxloc.sg2loc.localize`).
+
+The first frame is reported apart (all 2500 particles are rendered; KLD-sampling then keeps
+~500); compile time is separate. Peak RSS is the process's.
+
+    python benchmarks/online.py                        # 320x180 and 960x540, 10 frames
+    python benchmarks/online.py --sizes 960x540 --frames 20
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import resource
+import time
+
+import jax
+import numpy as np
+
+from jaxloc.sg2loc import online
+from jaxloc.sg2loc.filter import Frame, step
+from jaxloc.synthetic.indoor import EpisodeConfig, SensorConfig, make_episode
+
+
+def peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10
+
+
+def motion_of(sequence, t: int) -> np.ndarray:
+    return np.zeros(4, np.float32) if t == 0 else sequence.ego_motion[t - 1]
+
+
+def time_size(width: int, height: int, frames: int, seed: int) -> dict:
+    episode = make_episode(seed, frames, EpisodeConfig(sensor=SensorConfig(width, height)))
+    seq, scene = episode.sequence, episode.scene
+    state = online.init(jax.random.key(seed), scene, seq.camera)
+
+    def update(state, t):
+        return online.update(
+            state, seq.patch_embeddings[t], motion_of(seq, t), seq.depth[t], seq.rgb[t], seq.tilt[t]
+        )
+
+    start = time.perf_counter()
+    jax.block_until_ready(update(state, 0))  # compiles (the state is not advanced)
+    compile_s = time.perf_counter() - start
+    update_s, frames_in, localized = [], [], []
+    for t in range(frames):
+        start = time.perf_counter()
+        state, estimate = update(state, t)
+        jax.block_until_ready(estimate)
+        update_s.append(time.perf_counter() - start)
+        localized.append(bool(estimate.localized))
+
+    # the peer: the same step, jitted alone, on the frames as update builds them
+    config = state.config
+    rows, cols = state.pixels
+    h, w = config.grid.shape
+    frames_in = [
+        Frame(
+            index=np.int32(t),
+            motion=motion_of(seq, t),
+            patch_embeddings=seq.patch_embeddings[t].reshape(config.grid.num_patches, -1),
+            depth=seq.depth[t][rows, cols],
+            rgb=seq.rgb[t][rows, cols].reshape(h, w, 3),
+            tilt=seq.tilt[t],
+        )
+        for t in range(frames)
+    ]
+    jitted = jax.jit(step)
+    particles = online.init(jax.random.key(seed), scene, seq.camera).particles
+    jax.block_until_ready(jitted(jax.random.key(0), particles, frames_in[0], scene, config))
+    step_s = []
+    for t in range(frames):
+        start = time.perf_counter()
+        particles, info = jitted(jax.random.key(t), particles, frames_in[t], scene, config)
+        jax.block_until_ready((particles, info))
+        step_s.append(time.perf_counter() - start)
+    return {
+        "size": f"{width}x{height}",
+        "rays": int(config.grid.uv.shape[0]),
+        "compile": compile_s,
+        "update_first": update_s[0],
+        "update_rest": float(np.median(update_s[1:])) if frames > 1 else float("nan"),
+        "step_first": step_s[0],
+        "step_rest": float(np.median(step_s[1:])) if frames > 1 else float("nan"),
+        "localized": sum(localized),
+        "frames": frames,
+    }
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--sizes", default="320x180,960x540", help="comma list of WxH")
+    parser.add_argument("--frames", type=int, default=10)
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    device = jax.devices()[0]
+    load = os.getloadavg()[0]
+    rows = [
+        time_size(*map(int, size.split("x")), args.frames, args.seed)
+        for size in args.sizes.split(",")
+    ]
+    print("# Streaming SG2Loc: latency per frame (online.update vs the bare filter step)\n")
+    print(
+        f"- jax {jax.__version__} on {device.platform} ({device.device_kind}); "
+        f"{os.cpu_count()} CPUs, {platform.processor() or platform.machine()}; load average "
+        f"{load:.1f} at the start, {os.getloadavg()[0]:.1f} at the end; peak RSS "
+        f"{peak_rss_mib():.0f} MiB; 2500 particles, stride 20, {args.frames} frames, seed "
+        f"{args.seed}"
+    )
+    print(
+        "\n| image | rays/particle | compile s | update, first frame s | update, later frames s "
+        "(median) | step alone, first s | step alone, later s (median) | update / step (later) "
+        "| frames localized |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['size']} | {r['rays']} | {r['compile']:.1f} | {r['update_first']:.3f} | "
+            f"{r['update_rest']:.3f} | {r['step_first']:.3f} | {r['step_rest']:.3f} | "
+            f"{r['update_rest'] / r['step_rest']:.2f}x | {r['localized']} / {r['frames']} |"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,346 @@
+"""SG2Loc on a stream of frames: ``init`` once, then ``update`` with each frame as it arrives.
+
+BlackJAX style, for a camera that delivers frames one at a time::
+
+    state = online.init(jax.random.key(0), scene, camera)
+    for patches, motion, depth, rgb in camera_stream:          # motion: zeros for the first frame
+        state, est = online.update(state, patches, motion, depth=depth, rgb=rgb)
+        if est.localized:
+            act_on(est.pose)                                    # (x, y, z, yaw), world frame
+
+The machinery is :func:`jaxloc.sg2loc.filter.step`, the same step every round of
+:func:`~jaxloc.sg2loc.localize` runs, on one ray grid (``OnlineConfig.stride``, default 20, the
+coarse round's). Without coarse-to-fine rounds (which re-run past frames) the stream is one
+round: ``init(key)`` and ``update`` over frames 0..T-1 give the particles and estimates of
+``localize(key, ..., SG2LocConfig(strides=(stride,)))`` frame by frame, as long as no
+relocalization happens (``tests/test_online.py``). Each frame costs one call of one compiled
+program (``update`` is jitted; the state has fixed shapes); giving or leaving out depth or colour
+selects one of at most four programs.
+
+**Relocalization.** The verdict (:mod:`jaxloc.sg2loc.verdict`) is computed every frame. When it
+has been False for ``relocalize_after`` consecutive frames (default 5: the reference's injection
+period), ``relocalize_count`` particles (default 2000, the reference's injection size, at most the
+capacity) are replaced by random ones over the whole map's floor (the weakest first, as
+:func:`~jaxloc.sg2loc.particles.inject_uniform` does) and the count starts again. This recovers
+from a filter that converged on a wrong place or lost track (a kidnapped camera): the fresh
+particles are scored on the next frame, and the old cloud keeps its weight where it still
+explains the frames. ``relocalize_after = 0`` turns it off.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from jaxloc.camera import Camera, stride_grid
+from jaxloc.raycasting.engines import check_engine_name
+from jaxloc.scene import SceneGraph
+from jaxloc.sg2loc._convert import as_float32, as_int32
+from jaxloc.sg2loc.filter import Frame, Region, StepConfig, check_particle_chunk, grid_pixels, step
+from jaxloc.sg2loc.particles import PAPER_HEIGHTS, ParticleState, init_region, inject_uniform
+from jaxloc.sg2loc.resampling import KLDConfig
+from jaxloc.sg2loc.scores import ObservationConfig
+from jaxloc.sg2loc.verdict import Verdict, VerdictConfig
+
+#: Traces of the compiled update (a Python side effect runs only while tracing): one per
+#: combination of the inputs given (depth, colour) and of the state's shapes.
+TRACE_COUNTS: collections.Counter[str] = collections.Counter()
+
+
+class OnlineConfig(eqx.Module):
+    """Settings of the streaming filter (sizes static, weights and thresholds traced).
+
+    Attributes:
+        capacity: particle buffer size (static; paper 2500).
+        stride: pixel stride of the ray grid (static; the coarse round's 20).
+        patch_shape: (rows, cols) of the patch grid of the embeddings (static; paper 9 x 16).
+        observation, kld, verdict: as in :class:`~jaxloc.sg2loc.SG2LocConfig`.
+        sigma_trans, sigma_rot: motion noise (metres, radians).
+        region: where the particles start and where relocalization puts them (default: the
+            map's floor bounds).
+        heights: camera heights above the floor of those particles (metres).
+        relocalize_after: frames without the verdict before relocalizing (traced int; 0: never).
+        relocalize_count: particles replaced by random ones then (traced int, clamped to the
+            capacity).
+        engine, particle_chunk: as in :class:`~jaxloc.sg2loc.SG2LocConfig` (static).
+    """
+
+    capacity: int = eqx.field(static=True, default=2500)
+    stride: int = eqx.field(static=True, default=20)
+    patch_shape: tuple[int, int] = eqx.field(static=True, default=(9, 16))
+    observation: ObservationConfig = ObservationConfig()
+    kld: KLDConfig = KLDConfig()
+    verdict: VerdictConfig = VerdictConfig()
+    sigma_trans: Array = eqx.field(default=0.05, converter=as_float32)
+    sigma_rot: Array = eqx.field(default=0.05, converter=as_float32)
+    region: Region | None = None
+    heights: tuple[float, ...] = eqx.field(
+        static=True, default=PAPER_HEIGHTS, converter=lambda h: tuple(float(x) for x in h)
+    )
+    relocalize_after: Array = eqx.field(default=5, converter=as_int32)
+    relocalize_count: Array = eqx.field(default=2000, converter=as_int32)
+    engine: str = eqx.field(static=True, default="auto")
+    particle_chunk: int | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        check_engine_name(self.engine)
+        check_particle_chunk(self.particle_chunk)
+        for name in ("capacity", "stride"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"OnlineConfig.{name} must be a positive int, got {value!r}")
+        rows_cols = tuple(self.patch_shape)
+        if len(rows_cols) != 2 or any(not isinstance(n, int) or n < 1 for n in rows_cols):
+            raise ValueError(f"patch_shape must be two positive ints, got {self.patch_shape!r}")
+        if len(self.heights) < 1 or not all(np.isfinite(h) and h >= 0 for h in self.heights):
+            raise ValueError(f"heights must be finite heights >= 0 m, got {self.heights}")
+        for name in ("relocalize_after", "relocalize_count"):
+            value = getattr(self, name)
+            if not isinstance(value, jax.core.Tracer) and int(value) < 0:
+                raise ValueError(f"OnlineConfig.{name} must be >= 0, got {int(value)}")
+
+
+class OnlineState(eqx.Module):
+    """Everything the stream carries from frame to frame (a pytree of fixed shapes).
+
+    Attributes:
+        particles: the particles after the last frame (resampled, relocalized).
+        key: the PRNG key of the stream (frame t steps with ``fold_in(key, t)``).
+        index: int32 number of frames seen.
+        unlocalized: int32 consecutive frames without the verdict since the last relocalization.
+        scene: the map.
+        camera: the query camera.
+        pixels: (2, R) int32 the image row and column of each ray of the grid.
+        config: the step's configuration (grid, observation model, thresholds).
+        relocalize_after, relocalize_count: the relocalization policy (see the module docstring).
+    """
+
+    particles: ParticleState
+    key: Array
+    index: Array
+    unlocalized: Array
+    scene: SceneGraph
+    camera: Camera
+    pixels: Array
+    config: StepConfig
+    relocalize_after: Array
+    relocalize_count: Array
+
+
+class Estimate(NamedTuple):
+    """What :func:`update` tells about the frame it was given.
+
+    Attributes:
+        pose: (4,) float32 the MLE particle, (x, y, z, yaw), world frame, metres and radians.
+        localized: bool, act on ``pose`` only when True.
+        spread: (4,) float32 the particles' spread (``verdict.spread``).
+        mean: (4,) float32 the weighted mean pose.
+        verdict: the frame's :class:`~jaxloc.sg2loc.verdict.Verdict`.
+        num_particles: int32 particles kept by KLD-sampling.
+        relocalized: bool, random particles were injected over the map after this frame.
+        motion_valid: bool, the ego-motion was finite (else the particles only diffused).
+    """
+
+    pose: Array
+    localized: Array
+    spread: Array
+    mean: Array
+    verdict: Verdict
+    num_particles: Array
+    relocalized: Array
+    motion_valid: Array
+
+
+def _round_keys(key: Array) -> tuple[Array, Array]:
+    """``(key_init, key_run)`` of round 0 of :func:`~jaxloc.sg2loc.localize` with this key."""
+    (round_key,) = jax.random.split(key, 1)
+    key_init, key_run = jax.random.split(round_key)
+    return key_init, key_run
+
+
+def init(
+    key: Array, scene: SceneGraph, camera: Camera, config: OnlineConfig | None = None
+) -> OnlineState:
+    """The stream's first state: particles spread over the map's floor (or ``config.region``).
+
+    Args:
+        key: PRNG key; the same key and frames give the same estimates.
+        scene: the map.
+        camera: the query camera (its image size fixes the ray grid).
+        config: :class:`OnlineConfig` (paper settings at the coarse stride).
+    """
+    config = OnlineConfig() if config is None else config
+    if not isinstance(scene, SceneGraph):
+        raise TypeError(f"scene must be a jaxloc.SceneGraph, got {type(scene).__name__}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera must be a jaxloc.Camera, got {type(camera).__name__}")
+    rows, cols = config.patch_shape
+    region = Region.of_scene(scene) if config.region is None else config.region
+    step_config = StepConfig(
+        camera=camera,
+        grid=stride_grid(camera, config.stride, rows, cols),
+        observation=config.observation,
+        kld=config.kld,
+        region=region,
+        sigma_trans=config.sigma_trans,
+        sigma_rot=config.sigma_rot,
+        inject_count=0,
+        heights=config.heights,
+        engine=config.engine,
+        particle_chunk=config.particle_chunk,
+        verdict=config.verdict,
+    )
+    pixels = jnp.asarray(np.stack(grid_pixels(camera, step_config.grid)), jnp.int32)
+    key_init, key_run = _round_keys(key)
+    particles = init_region(
+        key_init, config.capacity, region.lo, region.hi, region.floor_z, heights=config.heights
+    )
+    state = OnlineState(
+        particles=particles,
+        key=key_run,
+        index=jnp.int32(0),
+        unlocalized=jnp.int32(0),
+        scene=scene,
+        camera=camera,
+        pixels=pixels,
+        config=step_config,
+        relocalize_after=config.relocalize_after,
+        relocalize_count=config.relocalize_count,
+    )
+    # Leaves as the compiled update returns them (NumPy scalars of the camera and the map become
+    # JAX arrays), so the second frame finds the first frame's program.
+    return jax.tree.map(jnp.asarray, state)
+
+
+def _image(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
+    array = np.asarray(value, np.float32)
+    if array.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} contains NaN/inf values")
+    return array
+
+
+def update(
+    state: OnlineState,
+    patch_embeddings,
+    ego_motion,
+    depth=None,
+    rgb=None,
+    tilt=None,
+) -> tuple[OnlineState, Estimate]:
+    """Filter one more frame: predict with ``ego_motion``, weigh, judge, resample, relocalize.
+
+    Args:
+        state: the stream's state (:func:`init`, or the last ``update``).
+        patch_embeddings: (rows, cols, d) float patch embeddings of the frame.
+        ego_motion: (4,) float (dx, dy, dz, dyaw) from the previous frame in its gravity-aligned
+            body frame (metres, radians); zeros for the first frame (ignored there). A NaN motion
+            (lost odometry) moves the particles by the motion noise only.
+        depth: optional (H, W) sensor depth in metres (0 = invalid).
+        rgb: optional (H, W, 3) colour in [0, 1].
+        tilt: optional (2,) known (pitch, roll) in radians (default level).
+
+    Returns:
+        ``(state, estimate)``; see :class:`Estimate`.
+
+    Raises:
+        ValueError: an input of the wrong shape, or a NaN/inf in the images or embeddings.
+    """
+    if not isinstance(state, OnlineState):
+        raise TypeError(f"state must be an OnlineState (online.init), got {type(state).__name__}")
+    config, camera = state.config, state.camera
+    rows, cols = config.grid.rows, config.grid.cols
+    dim = state.scene.embeddings.shape[1]
+    patches = _image("patch_embeddings", patch_embeddings, (rows, cols, dim))
+    motion = np.asarray(ego_motion, np.float32)
+    if motion.shape != (4,):
+        raise ValueError(f"ego_motion must have shape (4,), got {motion.shape}")
+    size = (camera.height, camera.width)
+    depth = None if depth is None else _image("depth", depth, size)
+    rgb = None if rgb is None else _image("rgb", rgb, (*size, 3))
+    if depth is not None and np.any(depth < 0):
+        raise ValueError("depth must be >= 0 (0 marks an invalid pixel)")
+    tilt = np.zeros(2, np.float32) if tilt is None else _image("tilt", tilt, (2,))
+    observation = dataclasses.replace(
+        config.observation,
+        use_depth=config.observation.use_depth and depth is not None,
+        use_color=config.observation.use_color and rgb is not None,
+    )
+    return _update(
+        state,
+        observation,
+        jnp.asarray(patches.reshape(rows * cols, dim)),
+        jnp.asarray(motion),
+        None if depth is None else jnp.asarray(depth),
+        None if rgb is None else jnp.asarray(rgb),
+        jnp.asarray(tilt),
+    )
+
+
+@eqx.filter_jit
+def _update(state, observation, patches, motion, depth, rgb, tilt):
+    TRACE_COUNTS["update"] += 1
+    config = dataclasses.replace(state.config, observation=observation)
+    pixel_rows, pixel_cols = state.pixels
+    h, w = config.grid.shape
+    frame = Frame(
+        index=state.index,
+        motion=motion,
+        patch_embeddings=patches,
+        depth=(
+            jnp.zeros(pixel_rows.shape, jnp.float32)
+            if depth is None
+            else depth[pixel_rows, pixel_cols]
+        ),
+        rgb=(
+            jnp.zeros((h, w, 3), jnp.float32)
+            if rgb is None
+            else rgb[pixel_rows, pixel_cols].reshape(h, w, 3)
+        ),
+        tilt=tilt,
+    )
+    key = jax.random.fold_in(state.key, state.index)
+    particles, info = step(key, state.particles, frame, state.scene, config)
+    localized = info.verdict.localized
+    unlocalized = jnp.where(localized, 0, state.unlocalized + 1)
+    relocalize = (state.relocalize_after > 0) & (unlocalized >= state.relocalize_after)
+    region = config.region
+    particles = jax.lax.cond(
+        relocalize,
+        lambda p: inject_uniform(
+            jax.random.fold_in(key, 1 << 30),
+            p,
+            state.relocalize_count,
+            region.lo,
+            region.hi,
+            region.floor_z,
+            config.heights,
+        ),
+        lambda p: p,
+        particles,
+    )
+    state = dataclasses.replace(
+        state,
+        particles=particles,
+        index=state.index + 1,
+        unlocalized=jnp.where(relocalize, 0, unlocalized),
+    )
+    estimate = Estimate(
+        pose=info.mle,
+        localized=localized,
+        spread=info.verdict.spread,
+        mean=info.mean,
+        verdict=info.verdict,
+        num_particles=info.num_particles,
+        relocalized=relocalize,
+        motion_valid=info.motion_valid,
+    )
+    return state, estimate

@@ -1,0 +1,176 @@
+"""Whether SG2Loc is localized: a per-frame verdict computed inside the jitted filter step.
+
+A particle filter always returns a pose; the verdict says whether to act on it. It rests on two
+kinds of evidence, because either alone fails:
+
+* **Convergence**: the particles' weighted spread (per axis: x, y, z in metres, yaw in radians,
+  around the weighted mean) and the effective sample size. A spread-out cloud has not decided.
+* **Explanation**: how well the estimate (the MLE particle) explains the frame, against the best
+  the map could explain. The semantic fraction is the MLE's semantic score over the score of a
+  view that would show every patch's best-matching map object (:func:`best_semantic_score`); the
+  depth deficit is the MLE's depth score below the variant's best (for the default ``"l1"``
+  variant: the mean absolute depth error in metres, a rendered miss counting 1 m); the colour
+  score is the MLE's SSIM score. Particles also converge on a place that only looks like the
+  map (the same furniture classes in another arrangement): there the cloud is tight, but no pose
+  renders the right objects at the right depths, which the explanation terms see.
+
+``localized = spread_xy <= max_spread_xy & spread_z <= max_spread_z & spread_yaw <= max_spread_yaw
+& ess_fraction <= max_ess_fraction & semantic_fraction >= min_semantic_fraction & depth_deficit <=
+max_depth_deficit & color >= min_color`` (a term whose score the filter does not use is left out),
+and never on a degenerate update. A high effective sample size after the update means the
+likelihood hardly tells the particles apart: nothing explains the frame much better than anything
+else. The thresholds
+(:class:`VerdictConfig`) are traced, so a sweep does not recompile; the defaults were chosen on
+development rooms and look-alike wrong places (``experiments/sg2loc_verdict.py``) for the paper's
+observation model and image size, and their precision and recall on rooms not used for the choice
+are in docs/pages/sg2loc.md.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import jax.numpy as jnp
+from jax import Array
+
+from jaxloc.geometry import wrap_angle
+from jaxloc.sg2loc._convert import as_float32
+from jaxloc.sg2loc.particles import ParticleState, effective_sample_size, normalized_weights
+from jaxloc.sg2loc.scores import (
+    COLOR_MAX,
+    DEPTH_MAX,
+    ObservationConfig,
+    PatchMatch,
+    Scores,
+)
+
+
+class VerdictConfig(eqx.Module):
+    """Thresholds of the per-frame verdict (traced float32 scalars; see the module docstring).
+
+    The defaults were chosen on 20 development rooms and their look-alike wrong places at the
+    paper's settings, offline and streaming (``experiments/sg2loc_verdict.py --choose dev``): the
+    most frames within 0.25 m and 5 degrees flagged while >= 97 % of flagged frames are within
+    0.5 m and 10 degrees and <= 2 % of wrong-place frames are flagged, with and without depth.
+    The colour score is not required (``min_color`` 0): SSIM against a coarse mesh's colours is
+    the score least likely to carry over from synthetic rooms to real images.
+
+    Attributes:
+        max_spread_xy: largest horizontal spread ``hypot(spread_x, spread_y)`` (metres).
+        max_spread_z: largest vertical spread (metres).
+        max_spread_yaw: largest yaw spread (radians).
+        max_ess_fraction: largest effective sample size over the active count (0-1).
+        min_semantic_fraction: smallest semantic score of the MLE over the frame's best (0-1).
+        max_depth_deficit: largest depth deficit of the MLE (the depth variant's best minus its
+            score; metres of mean absolute error for ``"l1"``).
+        min_color: smallest colour score of the MLE (mean SSIM for the ``"paper"`` variant).
+    """
+
+    max_spread_xy: Array = eqx.field(default=0.15, converter=as_float32)
+    max_spread_z: Array = eqx.field(default=0.05, converter=as_float32)
+    max_spread_yaw: Array = eqx.field(default=0.08, converter=as_float32)
+    max_ess_fraction: Array = eqx.field(default=0.4, converter=as_float32)
+    min_semantic_fraction: Array = eqx.field(default=0.72, converter=as_float32)
+    max_depth_deficit: Array = eqx.field(default=0.3, converter=as_float32)
+    min_color: Array = eqx.field(default=0.0, converter=as_float32)
+
+
+class Verdict(NamedTuple):
+    """One frame's verdict and what it is made of (scalars unless noted).
+
+    Attributes:
+        localized: bool, the estimate can be acted on.
+        spread: (4,) float32 weighted standard deviation of the particles around their weighted
+            mean: x, y, z (metres) and yaw (radians, of the wrapped differences).
+        ess_fraction: float32 effective sample size over the active particle count, in (0, 1].
+        semantic_fraction: float32 the MLE's semantic score over the frame's best attainable one
+            (0 when no patch matches any map object).
+        depth_deficit: float32 the MLE's depth score below its variant's best (0: no depth used
+            or no valid sensor depth).
+        color: float32 the MLE's colour score (the variant's best when colour is not used).
+    """
+
+    localized: Array
+    spread: Array
+    ess_fraction: Array
+    semantic_fraction: Array
+    depth_deficit: Array
+    color: Array
+
+
+def particle_spread(state: ParticleState) -> Array:
+    """(4,) float32 weighted standard deviation of the active particles around their weighted
+    mean: x, y, z in metres and yaw in radians (of the differences wrapped to [-pi, pi) around
+    the circular mean). Zeros with no active particle."""
+    weights, _ = normalized_weights(state.log_weights, state.active)
+    poses = jnp.where(state.active[:, None], state.poses, 0.0)
+    mean_xyz = jnp.sum(weights[:, None] * poses[:, :3], axis=0)
+    mean_yaw = jnp.arctan2(
+        jnp.sum(weights * jnp.sin(poses[:, 3])), jnp.sum(weights * jnp.cos(poses[:, 3]))
+    )
+    deviation = jnp.concatenate(
+        [poses[:, :3] - mean_xyz, wrap_angle(poses[:, 3] - mean_yaw)[:, None]], axis=1
+    )
+    variance = jnp.sum(weights[:, None] * deviation**2, axis=0)
+    return jnp.sqrt(jnp.maximum(variance, 0.0))
+
+
+def best_semantic_score(match: PatchMatch, variant: str = "gated") -> Array:
+    """The semantic score of a view that shows every patch's best-matching object (float32): the
+    most a pose in this map could score on this frame, for either variant (``"soft"`` also counts
+    other objects, but a patch's own best object is its largest term)."""
+    del variant  # both variants top out at every patch rendering its best match
+    num_patches = match.cosines.shape[0]
+    found = match.predicted >= 0
+    safe = jnp.where(found, match.predicted, 0)
+    cosine = jnp.take_along_axis(match.cosines, safe[:, None], axis=1)[:, 0]
+    return jnp.sum(jnp.where(found, cosine + 1.0, 0.0)) / num_patches
+
+
+def judge(
+    state: ParticleState,
+    best: Scores,
+    match: PatchMatch,
+    observation: ObservationConfig,
+    config: VerdictConfig,
+    degenerate: Array,
+) -> Verdict:
+    """The verdict of one frame from the weighted particles after the update.
+
+    Args:
+        state: the particles after the Bayes update (before resampling).
+        best: the MLE particle's :class:`~jaxloc.sg2loc.scores.Scores`.
+        match: the frame's :class:`~jaxloc.sg2loc.scores.PatchMatch`.
+        observation: the observation model the scores came from (which terms, which variants).
+        config: the thresholds.
+        degenerate: bool, the update's weights fell back to uniform (never localized).
+    """
+    spread = particle_spread(state)
+    active = jnp.maximum(jnp.sum(state.active), 1).astype(jnp.float32)
+    ess_fraction = effective_sample_size(state) / active
+    attainable = best_semantic_score(match, observation.semantic_variant)
+    semantic_fraction = jnp.where(
+        attainable > 0.0, best.semantic / jnp.where(attainable > 0.0, attainable, 1.0), 0.0
+    )
+    depth_deficit = (
+        DEPTH_MAX[observation.depth_variant] - best.depth
+        if observation.use_depth
+        else jnp.zeros((), jnp.float32)
+    )
+    color = (
+        best.color if observation.use_color else jnp.float32(COLOR_MAX[observation.color_variant])
+    )
+    localized = (
+        (jnp.hypot(spread[0], spread[1]) <= config.max_spread_xy)
+        & (spread[2] <= config.max_spread_z)
+        & (spread[3] <= config.max_spread_yaw)
+        & (ess_fraction <= config.max_ess_fraction)
+        & (semantic_fraction >= config.min_semantic_fraction)
+        & ~degenerate
+    )
+    if observation.use_depth:
+        localized = localized & (depth_deficit <= config.max_depth_deficit)
+    if observation.use_color:
+        localized = localized & (color >= config.min_color)
+    return Verdict(localized, spread, ess_fraction, semantic_fraction, depth_deficit, color)

@@ -1,0 +1,140 @@
+"""The streaming SG2Loc filter (:mod:`jaxloc.sg2loc.online`) on the tiny world of
+tests/_tiny_world.py: equal to one round of :func:`~jaxloc.sg2loc.localize`, one compiled program
+for a whole stream, relocalization, deterministic, and clear errors for bad frames."""
+
+from __future__ import annotations
+
+import _tiny_world as tiny
+import jax
+import numpy as np
+import pytest
+
+from jaxloc.sg2loc import SG2LocConfig, localize, online
+from jaxloc.sg2loc.particles import PAPER_HEIGHTS
+from jaxloc.sg2loc.resampling import KLDConfig
+from jaxloc.sg2loc.verdict import VerdictConfig
+
+NUM_FRAMES = 5
+KLD = KLDConfig(min_particles=4, max_particles=tiny.CAPACITY)
+#: stride 2 on the 32x18 camera: 16 x 9 rays, 3 x 4 patches (SSIM needs at least 7 x 7 rays).
+STREAM = online.OnlineConfig(
+    capacity=tiny.CAPACITY, stride=2, patch_shape=(3, 4), kld=KLD, relocalize_after=0
+)
+
+
+def stream(state, sequence, frames=range(NUM_FRAMES), **given):
+    estimates = []
+    for t in frames:
+        motion = np.zeros(4, np.float32) if t == 0 else sequence.ego_motion[t - 1]
+        inputs = {"depth": sequence.depth[t], "rgb": sequence.rgb[t]}
+        inputs.update(given)
+        state, estimate = online.update(state, sequence.patch_embeddings[t], motion, **inputs)
+        estimates.append(estimate)
+    return state, jax.tree.map(lambda *xs: np.stack(xs), *estimates)
+
+
+@pytest.fixture(scope="module")
+def world():
+    return tiny.scene(), tiny.sequence(NUM_FRAMES)
+
+
+def test_stream_equals_one_round_of_localize(world):
+    scene, sequence = world
+    state = online.init(jax.random.key(3), scene, sequence.camera, STREAM)
+    state, est = stream(state, sequence)
+    config = SG2LocConfig(capacity=tiny.CAPACITY, strides=(2,), kld=KLD)
+    located = localize(jax.random.key(3), scene, sequence, config)
+    np.testing.assert_array_equal(est.pose, np.asarray(located.poses))
+    np.testing.assert_array_equal(est.localized, np.asarray(located.localized))
+    # reductions fused differently in the scan and the one-frame program: float32 rounding
+    np.testing.assert_allclose(est.spread, np.asarray(located.info.verdict.spread), rtol=1e-5)
+    np.testing.assert_array_equal(est.num_particles, np.asarray(located.num_particles[0]))
+    assert int(state.index) == NUM_FRAMES and not est.relocalized.any()
+
+
+def test_one_program_for_the_whole_stream(world):
+    scene, sequence = world
+    state = online.init(jax.random.key(4), scene, sequence.camera, STREAM)
+    state, _ = stream(state, sequence, range(1))
+    before = online.TRACE_COUNTS["update"]
+    stream(state, sequence, range(1, NUM_FRAMES))
+    other = online.init(jax.random.key(5), scene, sequence.camera, STREAM)
+    stream(other, sequence, range(2))  # a new stream of the same shapes: no new program either
+    assert online.TRACE_COUNTS["update"] == before
+    stream(other, sequence, range(1), depth=None)  # no depth: the one other program
+    assert online.TRACE_COUNTS["update"] == before + 1
+
+
+def test_deterministic_and_nan_motion_is_survived(world):
+    scene, sequence = world
+    runs = [
+        stream(online.init(jax.random.key(6), scene, sequence.camera, STREAM), sequence)[1]
+        for _ in range(2)
+    ]
+    for a, b in zip(jax.tree.leaves(runs[0]), jax.tree.leaves(runs[1]), strict=True):
+        np.testing.assert_array_equal(a, b)
+    state = online.init(jax.random.key(6), scene, sequence.camera, STREAM)
+    state, _ = stream(state, sequence, range(1))
+    state, est = online.update(
+        state, sequence.patch_embeddings[1], np.full(4, np.nan), sequence.depth[1], sequence.rgb[1]
+    )
+    assert not bool(est.motion_valid) and np.all(np.isfinite(np.asarray(est.pose)))
+
+
+def test_relocalization_after_frames_without_the_verdict(world):
+    scene, sequence = world
+    never = VerdictConfig(min_semantic_fraction=2.0)  # no frame can be flagged
+    config = online.OnlineConfig(
+        capacity=tiny.CAPACITY,
+        stride=2,
+        patch_shape=(3, 4),
+        kld=KLD,
+        verdict=never,
+        relocalize_after=2,
+        relocalize_count=tiny.CAPACITY,
+    )
+    state = online.init(jax.random.key(7), scene, sequence.camera, config)
+    states, relocalized = [], []
+    for t in range(NUM_FRAMES):
+        state, est = stream(state, sequence, [t])
+        states.append(state)
+        relocalized.append(bool(est.relocalized[0]))
+    assert relocalized == [False, True, False, True, False]
+    # every particle replaced: the new ones lie on the region's floor heights, uniform in yaw
+    fresh = states[1].particles
+    assert bool(fresh.active.all())
+    region = states[1].config.region
+    heights = np.asarray(fresh.poses[:, 2]) - float(region.floor_z)
+    gaps = np.abs(heights[:, None] - np.asarray(PAPER_HEIGHTS)[None, :]).min(axis=1)
+    assert np.all(gaps < 1e-5)
+    assert int(states[1].unlocalized) == 0 and int(states[2].unlocalized) == 1
+
+
+def test_bad_frames_and_configs_are_clear_errors(world):
+    scene, sequence = world
+    state = online.init(jax.random.key(8), scene, sequence.camera, STREAM)
+    patches, depth, rgb = sequence.patch_embeddings[0], sequence.depth[0], sequence.rgb[0]
+    zero = np.zeros(4, np.float32)
+    cases = [
+        ((patches[:2], zero), {}, "patch_embeddings must have shape"),
+        ((patches, np.zeros(3)), {}, r"ego_motion must have shape \(4,\)"),
+        ((patches, zero), {"depth": depth[:5]}, "depth must have shape"),
+        ((patches, zero), {"depth": -depth}, "depth must be >= 0"),
+        ((patches, zero), {"rgb": np.full_like(rgb, np.nan)}, "rgb contains NaN"),
+    ]
+    for args, kwargs, message in cases:
+        with pytest.raises(ValueError, match=message):
+            online.update(state, *args, **kwargs)
+    with pytest.raises(TypeError, match="OnlineState"):
+        online.update(None, patches, zero)
+    with pytest.raises(ValueError, match="stride must be a positive int"):
+        online.OnlineConfig(stride=0)
+    with pytest.raises(ValueError, match="relocalize_after must be >= 0"):
+        online.OnlineConfig(relocalize_after=-1)
+    with pytest.raises(ValueError, match="SSIM needs a ray grid of at least 7 x 7"):
+        online.init(
+            jax.random.key(0),
+            scene,
+            sequence.camera,
+            online.OnlineConfig(capacity=16, stride=4, patch_shape=(3, 4)),
+        )
