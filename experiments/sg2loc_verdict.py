@@ -130,20 +130,11 @@ def run_split(split: str, seeds: list[int], frames: int) -> None:
                 )  # fmt: skip
             if (seed, kind, "online") not in done:
                 start = time.perf_counter()
-                state = online.init(jax.random.key(seed), scene, seq.camera, stream_config)
-                estimates = []
-                for t in range(frames):
-                    motion = np.zeros(4, np.float32) if t == 0 else seq.ego_motion[t - 1]
-                    state, est = online.update(
-                        state, seq.patch_embeddings[t], motion, seq.depth[t], seq.rgb[t],
-                        seq.tilt[t],
-                    )  # fmt: skip
-                    estimates.append(est)
-                stacked = jax.tree.map(lambda *xs: np.stack(xs), *estimates)
+                stream = online.filter_sequence(jax.random.key(seed), scene, seq, stream_config)
                 seconds = time.perf_counter() - start
                 found += rows_of(
-                    seed, kind, "online", episode, stacked.pose, stacked.verdict,
-                    stacked.relocalized, seconds,
+                    seed, kind, "online", episode, stream.pose, stream.verdict,
+                    stream.relocalized, seconds,
                 )  # fmt: skip
             new = not path.exists()
             with path.open("a", newline="") as f:

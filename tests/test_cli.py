@@ -256,7 +256,7 @@ def _malformed(tmp_path: Path, map_dir: Path, queries) -> dict:
         "pose count": ([map_dir, good_scan, "--gt", gt], "2 poses for 1 scan(s)"),
         "pose not rigid": ([map_dir, good_scan, "--gt", scaled], "pose 1 is not rigid"),
         "missing gt": ([map_dir, good_scan, "--gt", tmp_path / "no_gt.txt"], "missing file"),
-        "bad k": ([map_dir, good_scan, "-k", "0"], "-k must be >= 1"),
+        "bad k": ([map_dir, good_scan, "-k", "0"], "argument -k: want an integer >= 1, got '0'"),
     }
 
 
@@ -271,10 +271,9 @@ def test_bad_inputs_exit_2_with_one_line(map_dir, queries, tmp_path, capsys):
 
 def test_usage_errors_exit_2(capsys):
     for argv in (["localize-lidar", "map", "scan", "--scales", "4"], ["bench", "nothing"], []):
-        with pytest.raises(SystemExit) as exit_info:
-            main(argv)
-        assert exit_info.value.code == 2
-    assert "usage: jaxloc" in capsys.readouterr().err
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and err.startswith("jaxloc") and "--help)" in err, err
 
 
 # ----------------------------------------------------------------------------- bench and demo
@@ -307,7 +306,7 @@ def test_bench_raycast_tiny(capsys):
 
 def test_bench_rejects_bad_sizes(capsys):
     code, _, err = run(["bench", "raycast", "--poses", "0"], capsys)
-    assert code == 2 and "--poses must be >= 1" in err
+    assert code == 2 and "argument --poses: want an integer >= 1, got '0'" in err
 
 
 # The demo and `bench filter` share the room, camera, particle count and stride here, hence
@@ -319,15 +318,13 @@ def test_demo_tiny(tmp_path, capsys):
     figure = tmp_path / "demo.png"
     code, out, err = run(["demo", *TINY_SG2LOC, "--strides", "8,8", "--out", figure], capsys)
     assert code == 0, err
-    assert re.search(r"frame 2: position error \d+\.\d+ m", out)
+    assert re.search(r"frame 2: (not )?localized, position error \d+\.\d+ m", out)
     assert figure.read_bytes().startswith(b"\x89PNG")
 
 
 def test_demo_rejects_bad_strides(capsys):
     for bad in ("20,0", "20,x", ""):
-        with pytest.raises(SystemExit) as exit_info:
-            main(["demo", "--strides", bad])
-        assert exit_info.value.code == 2
+        assert main(["demo", "--strides", bad]) == 2
         assert "want positive integers like 20,8,4" in capsys.readouterr().err
 
 

@@ -168,6 +168,10 @@ def test_localize_camera_end_to_end(built, export_run, capsys):
     lines = [line for line in out.splitlines() if line.startswith("frame ")]
     assert [int(line.split()[1].rstrip(":")) for line in lines] == FRAMES
     assert re.search(r"\| error [\d.]+ m, [\d.]+ deg$", lines[-1])
+    # the verdict per frame, the same in the text and the JSON
+    flags = [line.split(": ", 1)[1].startswith("localized") for line in lines]
+    assert flags == report["localized"] and report["mode"] == "offline"
+    assert f"localized: {sum(flags)} of {len(FRAMES)} frames" in out
     assert "last frame: " in out and "R@0.25m,10deg" in out
     assert "refined last frame: ok" in out and "T_world_cam =" in out
 
@@ -288,8 +292,44 @@ def test_localize_camera_bad_map_and_options(built, tmp_path, capsys):
     result = run(["localize-camera", broken, seq, *LOCALIZE], capsys)
     assert_input_error(*result, "broken.npz: not a readable jaxloc map")
     result = run(["localize-camera", built[0], seq, *LOCALIZE, "--strides", "20"], capsys)
-    assert_input_error(*result, "stride 20 casts 4x3 rays", "(SSIM) needs 7x7")
+    assert_input_error(*result, "--strides: stride 20 casts 3x2 rays", "(SSIM) needs 7x7")
+    result = run(
+        ["localize-camera", built[0], seq, *LOCALIZE, "--online", "--plot", "x.png"], capsys
+    )
+    assert_input_error(*result, "--plot draws the coarse-to-fine rounds")
     result = run(["localize-camera", built[0], seq, *LOCALIZE, "--refine", "--no-depth"], capsys)
     assert_input_error(*result, "--refine needs depth images", "depth")
     result = run(["localize-camera", built[0], seq, *LOCALIZE, "--heights", "nan"], capsys)
-    assert_input_error(*result, "heights must be a non-empty tuple")
+    assert_input_error(*result, "argument --heights: want a finite number >= 0, got 'nan'")
+
+
+@pytest.mark.slow
+def test_localize_camera_online_is_the_library_stream(built, capsys):
+    """``--online`` prints what :func:`jaxloc.sg2loc.online.filter_sequence` returns for the
+    recording :func:`jaxloc.io.open_camera_recording` opens: the same poses and verdicts."""
+    import jax
+
+    from jaxloc.io import open_camera_recording
+    from jaxloc.sg2loc import online
+    from jaxloc.sg2loc.particles import PAPER_HEIGHTS
+    from jaxloc.sg2loc.resampling import KLDConfig
+
+    map_path, seq, _ = built
+    argv = ["localize-camera", map_path, seq, *LOCALIZE, "--online", "--json"]
+    code, out, err = run(argv, capsys)
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["mode"] == "online" and len(report["localized"]) == len(FRAMES)
+    recording = open_camera_recording(seq, map_file=map_path, width=64)
+    config = online.OnlineConfig(
+        capacity=1000,
+        stride=6,
+        heights=(1.2, 1.3, 1.4),
+        kld=KLDConfig(min_particles=500, max_particles=1000),
+    )
+    assert config.heights != PAPER_HEIGHTS
+    expected = online.filter_sequence(
+        jax.random.key(0), load_scene(map_path), recording.sequence, config
+    )
+    np.testing.assert_allclose(report["poses"], expected.pose, atol=1e-6)
+    assert report["localized"] == expected.localized.tolist()

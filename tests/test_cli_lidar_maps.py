@@ -357,14 +357,17 @@ def test_accumulate_fuses_the_last_scans_through_odometry(built, sequence_dir, t
     for a, b in zip(scans, again, strict=True):
         assert a["T_map_scan"] == b["T_map_scan"] and a["valid"] == b["valid"]
     for bad, message in (
-        (["--accumulate", "0"], "--accumulate must be >= 1"),
+        (["--accumulate", "0"], "argument --accumulate: want an integer >= 1, got '0'"),
         (["--odometry", odometry], "only used with --accumulate"),
         (["--window-instances", "5"], "--window-instances is only used with --accumulate K > 1"),
         (
             ["--accumulate", "3", "--accumulate-max", "2"],
             "--accumulate-max must be >= --accumulate",
         ),
-        (["--accumulate", "2", "--window-instances", "-1"], "--window-instances must be >= 0"),
+        (
+            ["--accumulate", "2", "--window-instances", "-1"],
+            "argument --window-instances: want an integer >= 0, got '-1'",
+        ),
     ):
         code, _, err = run(["localize-lidar", saved, sequence_dir, *bad], capsys)
         assert code == 2 and message in err, err

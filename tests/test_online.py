@@ -138,3 +138,15 @@ def test_bad_frames_and_configs_are_clear_errors(world):
             sequence.camera,
             online.OnlineConfig(capacity=16, stride=4, patch_shape=(3, 4)),
         )
+
+
+def test_filter_sequence_is_the_stream(world):
+    scene, sequence = world
+    _, by_hand = stream(online.init(jax.random.key(9), scene, sequence.camera, STREAM), sequence)
+    seen = []
+    whole = online.filter_sequence(jax.random.key(9), scene, sequence, STREAM, progress=seen.append)
+    assert seen == list(range(NUM_FRAMES))
+    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(by_hand), strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(TypeError, match="jaxloc.Sequence"):
+        online.filter_sequence(jax.random.key(0), scene, None)

@@ -16,9 +16,9 @@ Every command but ``cache`` turns on the persistent compilation cache
 a program compiled once on a machine is loaded, not compiled, by later runs. Parsing and ``--help``
 import neither JAX nor the pipelines (each command imports what it needs).
 
-Input problems (missing or malformed files, bad numbers) end with exit code 2 and a one-line
-message on stderr, never a traceback. ``main(argv)`` returns the exit code, so the command can be
-called in-process (tests do).
+Input problems (missing or malformed files, bad numbers, option values out of their range) end
+with exit code 2 and a one-line message on stderr, never a traceback. ``main(argv)`` returns the
+exit code, so the command can be called in-process (tests do).
 """
 
 from __future__ import annotations
@@ -29,24 +29,39 @@ from collections.abc import Callable
 from pathlib import Path
 
 from jaxloc.cli import _camera, _scene_graph
-from jaxloc.cli._bench import run_bench_filter, run_bench_raycast, run_bench_triplet
-from jaxloc.cli._demo import run_demo
+from jaxloc.cli._bench import (
+    check_bench_filter,
+    check_bench_raycast,
+    run_bench_filter,
+    run_bench_raycast,
+    run_bench_triplet,
+)
+from jaxloc.cli._demo import check_demo, run_demo
 from jaxloc.cli._errors import InputError, run_guarded
 from jaxloc.cli._lidar import (
     DEFAULT_K,
     DEFAULT_MIN_CLIQUE,
     DEFAULT_SCALES,
     DEFAULT_THRESHOLD,
+    check_localize_lidar,
     run_localize_lidar,
 )
 from jaxloc.cli._lidar import DESCRIPTION as _LIDAR_DESCRIPTION
 from jaxloc.cli._lidar import EPILOG as _LIDAR_EPILOG
 from jaxloc.cli._lidar_map import DESCRIPTION as _BUILD_LIDAR_MAP_DESCRIPTION
 from jaxloc.cli._lidar_map import EPILOG as _BUILD_LIDAR_MAP_EPILOG
-from jaxloc.cli._lidar_map import run_build_lidar_map
-from jaxloc.cli._lidar_scans import add_pose_output_options, add_sequence_options
+from jaxloc.cli._lidar_map import check_build_lidar_map, run_build_lidar_map
+from jaxloc.cli._lidar_scans import add_drive_options, add_pose_output_options, add_sequence_options
+from jaxloc.cli._options import (
+    Parser,
+    at_least,
+    positive_float,
+    positive_int,
+    seed,
+    stride_list,
+)
 
-__all__ = ["InputError", "build_parser", "main"]
+__all__ = ["InputError", "build_parser", "check_args", "main"]
 
 
 _MAIN_EPILOG = """\
@@ -81,17 +96,6 @@ networkx) are the scripts in benchmarks/ of the repository.
 """
 
 
-def _strides(text: str) -> tuple[int, ...]:
-    """``--strides 20,8,4``: positive pixel strides, one per round."""
-    try:
-        strides = tuple(int(part) for part in text.split(","))
-    except ValueError:
-        strides = ()
-    if not strides or min(strides) < 1:
-        raise argparse.ArgumentTypeError(f"want positive integers like 20,8,4, got {text!r}")
-    return strides
-
-
 def _add_triplet_options(
     parser: argparse.ArgumentParser, scales: int | None, k: int | None
 ) -> None:
@@ -112,19 +116,19 @@ def _add_triplet_options(
     )
     group.add_argument(
         "-k",
-        type=int,
+        type=positive_int,
         default=k,
-        help=f"map matches per scan instance and scale (default {k or DEFAULT_K})",
+        help=f"map matches per scan instance and scale, >= 1 (default {k or DEFAULT_K})",
     )
     group.add_argument(
         "--threshold",
-        type=float,
-        help=f"consistency threshold of the match graph, metres (default {DEFAULT_THRESHOLD})",
+        type=positive_float,
+        help=f"consistency threshold of the match graph, metres, > 0 (default {DEFAULT_THRESHOLD})",
     )
     group.add_argument(
         "--min-clique",
-        type=int,
-        help="add scales while the clique is smaller than this (M2Loc's T, default "
+        type=positive_int,
+        help="add scales while the clique is smaller than this, >= 1 (M2Loc's T, default "
         f"{DEFAULT_MIN_CLIQUE})",
     )
     group.add_argument("--no-rsn", action="store_true", help="ignore the road-normal prior")
@@ -140,7 +144,7 @@ def _add_triplet_options(
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``jaxloc`` command (demo, localize-lidar, build-lidar-map,
     bench)."""
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="jaxloc",
         description="Differentiable global localization against compact maps.",
         epilog=_MAIN_EPILOG,
@@ -152,7 +156,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="do not use JAX's persistent compilation cache (also: JAXLOC_NO_CACHE=1)",
     )
     commands = parser.add_subparsers(
-        dest="command", required=True, metavar="COMMAND", help="what to run (COMMAND --help)"
+        dest="command",
+        required=True,
+        metavar="COMMAND",
+        help="what to run (COMMAND --help)",
+        parser_class=Parser,
     )
     demo = commands.add_parser(
         "demo",
@@ -160,21 +168,31 @@ def build_parser() -> argparse.ArgumentParser:
         description="Builds a synthetic room and a query sequence, renders a few views, runs the "
         "coarse-to-fine SG2Loc particle filter with a progress bar, prints per-frame errors and "
         "writes a figure of the particles per round and frame.",
-        epilog="examples:\n  jaxloc demo\n  jaxloc demo --seed 3 --frames 10 --out demo.png",
+        epilog="examples:\n  jaxloc demo\n  jaxloc demo --seed 3 --frames 10 --out demo.png\n"
+        "  jaxloc demo --width 160 --height 120   # strides lowered to fit: 18,8,4",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    demo.add_argument("--seed", type=int, default=1, help="room and sequence seed (default 1)")
-    demo.add_argument("--frames", type=int, default=6, help="frames in the sequence (default 6)")
+    demo.add_argument("--seed", type=seed, default=1, help="room and sequence seed (default 1)")
     demo.add_argument(
-        "--particles", type=int, default=2500, help="particle capacity (default 2500, the paper's)"
+        "--frames", type=positive_int, default=6, help="frames in the sequence (default 6)"
     )
-    demo.add_argument("--width", type=int, default=960, help="image width, pixels (default 960)")
-    demo.add_argument("--height", type=int, default=540, help="image height, pixels (default 540)")
+    demo.add_argument(
+        "--particles",
+        type=positive_int,
+        default=2500,
+        help="particle capacity (default 2500, the paper's)",
+    )
+    demo.add_argument(
+        "--width", type=positive_int, default=960, help="image width, pixels, >= 16 (default 960)"
+    )
+    demo.add_argument(
+        "--height", type=positive_int, default=540, help="image height, pixels, >= 9 (default 540)"
+    )
     demo.add_argument(
         "--strides",
-        type=_strides,
-        default=(20, 8, 4),
-        help="pixel stride of each coarse-to-fine round (default 20,8,4, the paper's)",
+        type=stride_list,
+        help="pixel stride of each coarse-to-fine round, each casting at least 7 x 7 rays "
+        "(default the paper's 20,8,4, each lowered to fit a small image)",
     )
     demo.add_argument("--out", type=Path, default=Path("jaxloc_demo.png"), help="figure path (PNG)")
 
@@ -189,43 +207,12 @@ def build_parser() -> argparse.ArgumentParser:
     lidar.add_argument("scans", type=Path, nargs="+", metavar="SCAN", help="scan file(s)")
     lidar.add_argument("--gt", type=Path, help="ground-truth poses: KITTI, 4x4 or TUM (see below)")
     lidar.add_argument(
-        "--every", type=int, default=1, help="of a sequence folder, every N-th scan (default 1)"
-    )
-    lidar.add_argument(
-        "--accumulate",
-        type=int,
+        "--every",
+        type=positive_int,
         default=1,
-        metavar="K",
-        help="localize each scan with the instances of the last K scans fused through odometry "
-        "(default 1: each scan alone); the window grows with older scans while it holds few "
-        "instances (--window-instances, --accumulate-max)",
+        help="of a sequence folder, every N-th scan (default 1)",
     )
-    lidar.add_argument(
-        "--window-instances",
-        type=int,
-        metavar="N",
-        help="with --accumulate K: add older scans while the fused window holds fewer than N "
-        "instances (default: jaxloc.m2loc.WINDOW_MIN_INSTANCES; 0: exactly K scans)",
-    )
-    lidar.add_argument(
-        "--accumulate-max",
-        type=int,
-        metavar="M",
-        help="with --accumulate K: the most scans a window grows to (default 2K)",
-    )
-    lidar.add_argument(
-        "--odometry",
-        type=Path,
-        metavar="FILE",
-        help="odometry for --accumulate and --track: poses in any format --gt takes (default: "
-        "the sequence's own poses)",
-    )
-    lidar.add_argument(
-        "--track",
-        action="store_true",
-        help="track the drive: after a verified pose, localize the next scans near the odometry "
-        "prediction (milliseconds), global localization when that fails",
-    )
+    add_drive_options(lidar)
     lidar.add_argument("--save-map", type=Path, metavar="FILE", help="save the described map")
     lidar.add_argument("--json", action="store_true", help="print one JSON document instead")
     lidar.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -243,7 +230,10 @@ def build_parser() -> argparse.ArgumentParser:
     build.add_argument("seq_dir", type=Path, metavar="SEQ_DIR", help="labelled sequence folder")
     build.add_argument("out_dir", type=Path, metavar="OUT_DIR", help="map folder to write")
     build.add_argument(
-        "--every", type=int, default=30, help="use every K-th scan (default 30, as TripletLoc)"
+        "--every",
+        type=positive_int,
+        default=30,
+        help="use every K-th scan (default 30, as TripletLoc)",
     )
     build.add_argument("--save-map", type=Path, metavar="FILE", help="also save it described")
     build.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -258,23 +248,43 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     kinds = bench.add_subparsers(
-        dest="bench", required=True, metavar="WHAT", help="what to time (WHAT --help: options)"
+        dest="bench",
+        required=True,
+        metavar="WHAT",
+        help="what to time (WHAT --help: options)",
+        parser_class=Parser,
     )
     raycast = kinds.add_parser(
         "raycast",
         help="rays/s of render_batch in a synthetic room",
         description="Times jax.jit(render_batch) on random poses in a synthetic room.",
     )
-    raycast.add_argument("--poses", type=int, default=64, help="camera poses (default 64)")
-    raycast.add_argument("--width", type=int, default=480, help="image width (default 480)")
-    raycast.add_argument("--height", type=int, default=270, help="image height (default 270)")
-    raycast.add_argument("--stride", type=int, default=10, help="pixel stride (default 10)")
-    raycast.add_argument("--objects", type=int, default=20, help="furniture objects (default 20)")
+    raycast.add_argument("--poses", type=positive_int, default=64, help="camera poses (default 64)")
     raycast.add_argument(
-        "--vertices", type=int, default=600, help="vertices per object mesh (default 600)"
+        "--width", type=positive_int, default=480, help="image width (default 480)"
     )
-    raycast.add_argument("--repeats", type=int, default=3, help="timed runs, best of (default 3)")
-    raycast.add_argument("--seed", type=int, default=0, help="room and pose seed (default 0)")
+    raycast.add_argument(
+        "--height", type=positive_int, default=270, help="image height (default 270)"
+    )
+    raycast.add_argument(
+        "--stride",
+        type=positive_int,
+        default=10,
+        help="pixel stride, at most 2 x min(width, height) - 1 (default 10)",
+    )
+    raycast.add_argument(
+        "--objects", type=positive_int, default=20, help="furniture objects (default 20)"
+    )
+    raycast.add_argument(
+        "--vertices",
+        type=at_least(100),
+        default=600,
+        help="vertices per object mesh, >= 100 (default 600)",
+    )
+    raycast.add_argument(
+        "--repeats", type=positive_int, default=3, help="timed runs, best of (default 3)"
+    )
+    raycast.add_argument("--seed", type=seed, default=0, help="room and pose seed (default 0)")
 
     filter_ = kinds.add_parser(
         "filter",
@@ -282,12 +292,23 @@ def build_parser() -> argparse.ArgumentParser:
         description="Times SG2Loc (one round: render, score, resample per frame) on the demo's "
         "synthetic room, after compilation.",
     )
-    filter_.add_argument("--particles", type=int, default=1000, help="capacity (default 1000)")
-    filter_.add_argument("--frames", type=int, default=3, help="frames timed (default 3)")
-    filter_.add_argument("--width", type=int, default=160, help="image width (default 160)")
-    filter_.add_argument("--height", type=int, default=90, help="image height (default 90)")
-    filter_.add_argument("--stride", type=int, default=8, help="pixel stride (default 8)")
-    filter_.add_argument("--seed", type=int, default=1, help="episode seed (default 1)")
+    filter_.add_argument(
+        "--particles", type=positive_int, default=1000, help="capacity (default 1000)"
+    )
+    filter_.add_argument("--frames", type=positive_int, default=3, help="frames timed (default 3)")
+    filter_.add_argument(
+        "--width", type=positive_int, default=160, help="image width, >= 16 (default 160)"
+    )
+    filter_.add_argument(
+        "--height", type=positive_int, default=90, help="image height, >= 9 (default 90)"
+    )
+    filter_.add_argument(
+        "--stride",
+        type=positive_int,
+        default=8,
+        help="pixel stride, casting at least 7 x 7 rays (default 8)",
+    )
+    filter_.add_argument("--seed", type=seed, default=1, help="episode seed (default 1)")
 
     triplet = kinds.add_parser(
         "triplet",
@@ -295,10 +316,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Times localize_scan on seeded scan-like queries cut from the map "
         "(jaxloc.synthetic.outdoor.make_query), and reports the success rate.",
     )
-    triplet.add_argument("--queries", type=int, default=20, help="queries (default 20)")
+    triplet.add_argument("--queries", type=positive_int, default=20, help="queries (default 20)")
     triplet.add_argument(
         "--max-kept",
-        type=int,
+        type=positive_int,
         default=24,
         help="map instances kept per query (default 24: with the spurious ones at most 31, "
         "so all queries share one compilation)",
@@ -307,8 +328,10 @@ def build_parser() -> argparse.ArgumentParser:
     triplet.add_argument(
         "--world", choices=("sparse", "dense"), default="dense", help="synthetic world kind"
     )
-    triplet.add_argument("--blocks", type=int, default=2, help="synthetic world: blocks per side")
-    triplet.add_argument("--seed", type=int, default=0, help="world and query seed (default 0)")
+    triplet.add_argument(
+        "--blocks", type=positive_int, default=2, help="synthetic world: blocks per side"
+    )
+    triplet.add_argument("--seed", type=seed, default=0, help="world and query seed (default 0)")
     _add_triplet_options(triplet, scales=1, k=25)
     _scene_graph.add_parser(commands)
     _camera.add_parser(commands)
@@ -351,6 +374,17 @@ def _enable_cache(args: argparse.Namespace) -> None:
         print(f"jaxloc: note: no compilation cache ({error})", file=sys.stderr)
 
 
+#: The checks of options that depend on each other (or on the file system) per command, run
+#: after parsing and before the command does any work: an InputError, one line, exit status 2.
+#: A single option's range is checked where it is parsed (:mod:`jaxloc.cli._options`).
+_CHECKS: dict[str, Callable[[argparse.Namespace], None]] = {
+    "demo": check_demo,
+    "localize-lidar": check_localize_lidar,
+    "build-lidar-map": check_build_lidar_map,
+    "bench raycast": check_bench_raycast,
+    "bench filter": check_bench_filter,
+}
+
 _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
     "demo": run_demo,
     "localize-lidar": run_localize_lidar,
@@ -364,15 +398,40 @@ _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
 }
 
 
+def _command_name(args: argparse.Namespace) -> str:
+    return args.command if args.command != "bench" else f"bench {args.bench}"
+
+
+def check_args(args: argparse.Namespace) -> None:
+    """The checks of parsed ``args`` that span several options (the demo's strides against its
+    image size, ``--accumulate-max`` against ``--accumulate``, ...): an InputError naming the
+    option if they do not fit. Cheap: reads no input file, compiles nothing."""
+    check = _CHECKS.get(_command_name(args))
+    if check is not None:
+        check(args)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the ``jaxloc`` command with ``argv`` (default ``sys.argv[1:]``); returns the exit code.
 
-    Usage errors (unknown options) exit through argparse with status 2.
+    Usage errors (an unknown command or option, an option value out of its range), options that
+    do not fit each other (:func:`check_args`) and bad input files return 2 after one line on
+    stderr; ``--help`` prints the help and exits through argparse (``SystemExit(0)``).
     """
-    args = build_parser().parse_args(argv)
-    name = args.command if args.command != "bench" else f"bench {args.bench}"
-    _enable_cache(args)
-    return run_guarded(name, lambda: _COMMANDS[name](args))
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exit_info:
+        if not exit_info.code:  # --help
+            raise
+        return exit_info.code  # Parser.error: its one line is on stderr
+    name = _command_name(args)
+
+    def checked_run() -> int:
+        check_args(args)
+        _enable_cache(args)
+        return _COMMANDS[name](args)
+
+    return run_guarded(name, checked_run)
 
 
 if __name__ == "__main__":

@@ -4,13 +4,19 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 
 import numpy as np
 
-from jaxloc.cli._demo import demo_episode_config
+from jaxloc.cli._demo import (
+    check_image_size,
+    demo_episode_config,
+    fits_ssim,
+    largest_fitting_stride,
+    ray_grid_shape,
+)
 from jaxloc.cli._errors import InputError
-from jaxloc.cli._lidar import check_config_args, describe_map, triplet_config
+from jaxloc.cli._lidar import describe_map, triplet_config
 from jaxloc.cli._lidar_scans import reading
 
 
@@ -25,10 +31,29 @@ def _timed(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
     return best
 
 
-def _check_positive(args: argparse.Namespace, names: Sequence[str]) -> None:
-    for name in names:
-        if getattr(args, name) < 1:
-            raise InputError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+def check_bench_raycast(args: argparse.Namespace) -> None:
+    """``--stride`` must cast at least one ray per side of the ``--width x --height`` image."""
+    if min(ray_grid_shape(args.stride, args.width, args.height)) < 1:
+        raise InputError(
+            f"--stride {args.stride} casts no ray on a {args.width} x {args.height} image; use "
+            f"--stride {2 * min(args.width, args.height) - 1} or less"
+        )
+
+
+def check_bench_filter(args: argparse.Namespace) -> None:
+    """The image must hold the demo's patch grid, and ``--stride`` cast at least SSIM's 7 x 7
+    rays on it (:class:`jaxloc.sg2loc.filter.StepConfig` refuses a smaller ray grid)."""
+    from jaxloc.sg2loc.scores import SSIM_WINDOW
+
+    check_image_size(args)
+    if not fits_ssim(args.stride, args.width, args.height):
+        rows, cols = ray_grid_shape(args.stride, args.width, args.height)
+        largest = largest_fitting_stride(args.width, args.height, args.stride)
+        raise InputError(
+            f"--stride: stride {args.stride} gives a {rows} x {cols} ray grid at {args.width} x "
+            f"{args.height}, smaller than SSIM's {SSIM_WINDOW} x {SSIM_WINDOW} window; use "
+            f"--stride {largest} or less"
+        )
 
 
 def run_bench_raycast(args: argparse.Namespace) -> int:
@@ -38,7 +63,6 @@ def run_bench_raycast(args: argparse.Namespace) -> int:
     from jaxloc.sg2loc.rendering import render_batch
     from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
 
-    _check_positive(args, ("poses", "width", "height", "stride", "objects", "vertices", "repeats"))
     room = make_room(
         args.seed,
         RoomConfig(num_objects=(args.objects, args.objects), vertex_range=(args.vertices,) * 2),
@@ -82,7 +106,6 @@ def run_bench_filter(args: argparse.Namespace) -> int:
     from jaxloc.sg2loc.resampling import KLDConfig
     from jaxloc.synthetic import indoor
 
-    _check_positive(args, ("particles", "frames", "width", "height", "stride"))
     start = time.perf_counter()
     episode = indoor.make_episode(args.seed, args.frames, demo_episode_config(args))
     build_s = time.perf_counter() - start
@@ -119,8 +142,6 @@ def run_bench_triplet(args: argparse.Namespace) -> int:
     from jaxloc.m2loc import SUCCESS_RRE_DEG, SUCCESS_RTE_M, localization_errors, localize_drive
     from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
-    _check_positive(args, ("queries", "max_kept", "blocks"))
-    check_config_args(args)
     config = triplet_config(args)
     if args.map is not None:
         from jaxloc.io import load_lidar_map

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxloc.cli._demo import ray_grid_shape
 from jaxloc.cli._errors import InputError
+from jaxloc.cli._options import nonnegative_float, positive_float, positive_int, seed
 
 DESCRIPTION = """\
 Localize a camera sequence in a scene graph (SG2Loc's coarse-to-fine particle filter).
@@ -31,10 +33,13 @@ label-filt/, to the map's classes), turned into embeddings with the map's class 
 An odometry file (--odometry, default odometry.txt beside the frames: lines "N m00 ... m33",
 camera-to-odometry, z up) gives the ego-motion and tilt instead of the recording's poses.
 
-Per frame it prints the estimate (x, y, z in metres, yaw in degrees; the map's frame) and, with
-ground-truth poses, the position and rotation errors and the recalls. --poses-out writes the
-estimated camera-to-world poses for evo (TUM: the frame's timestamp in seconds from a .sens, else
-its number; KITTI: one 3x4 per line).
+Per frame it prints the estimate (x, y, z in metres, yaw in degrees; the map's frame), the verdict
+(localized or not: act on the estimate only when localized; jaxloc.sg2loc.verdict) and, with
+ground-truth poses, the position and rotation errors and the recalls. --online feeds the frames
+one at a time to the streaming filter (jaxloc.sg2loc.online: one round at the first stride,
+what a live camera would have been told) instead of the coarse-to-fine rounds over the sequence.
+--poses-out writes the estimated camera-to-world poses for evo (TUM: the frame's timestamp in
+seconds from a .sens, else its number; KITTI: one 3x4 per line).
 """
 
 EPILOG = """\
@@ -45,6 +50,7 @@ examples:
   jaxloc localize-camera <ref_id>.npz 3RScan/<rescan_id> --rescan-json 3RScan.json
   jaxloc localize-camera room.npz seq --heights 1.2 1.3 1.4 1.5 --particles 4000 --plot run.png
   jaxloc localize-camera room.npz seq --max-frames 10 --step 5 --refine --json > result.json
+  jaxloc localize-camera room.npz seq --online --strides 20
 
 exit status: 0 on success, 2 on missing or malformed files or bad options (one-line message).
 """
@@ -70,7 +76,7 @@ def add_parser(commands) -> None:
         "--label-column", default="nyu40id", help="--label-table's class column (default nyu40id)"
     )
     data.add_argument(
-        "--patches", type=int, nargs=2, default=[9, 16], metavar=("ROWS", "COLS"),
+        "--patches", type=positive_int, nargs=2, default=[9, 16], metavar=("ROWS", "COLS"),
         help="patch grid of embeddings made from label images (default 9 16)",
     )  # fmt: skip
     data.add_argument("--rescan-json", type=Path, metavar="JSON", help="3RScan.json (3rscan)")
@@ -80,27 +86,44 @@ def add_parser(commands) -> None:
         "--odometry", type=Path, metavar="FILE", help="'N m00 ... m33', TUM or KITTI poses"
     )
     group = parser.add_argument_group("filter settings")
-    group.add_argument("--particles", type=int, default=2500, help="particle capacity")
+    group.add_argument("--particles", type=positive_int, default=2500, help="particle capacity")
     group.add_argument(
-        "--strides", type=int, nargs="+", default=[20, 8, 4], help="ray stride per round"
+        "--strides",
+        type=positive_int,
+        nargs="+",
+        default=[20, 8, 4],
+        help="ray stride per round (with --online: the first)",
     )
     group.add_argument(
-        "--boxes", type=float, nargs="+", default=[0.8, 0.4], help="re-init box half-widths (m)"
+        "--boxes",
+        type=positive_float,
+        nargs="+",
+        default=[0.8, 0.4],
+        help="re-init box half-widths (m)",
+    )
+    group.add_argument(
+        "--online",
+        action="store_true",
+        help="stream the frames one at a time (jaxloc.sg2loc.online) instead of the rounds",
     )
     group.add_argument(
         "--heights",
-        type=float,
+        type=nonnegative_float,
         nargs="+",
         help="initial camera heights above the floor, m (default the paper's, "
         "jaxloc.sg2loc.particles.PAPER_HEIGHTS)",
     )
-    group.add_argument("--width", type=int, default=320, help="working width, px (default 320)")
-    group.add_argument("--height", type=int, help="working height, px (default: keep the aspect)")
-    group.add_argument("--step", type=int, default=1, help="use every STEP-th frame")
-    group.add_argument("--max-frames", type=int, help="use at most this many frames")
+    group.add_argument(
+        "--width", type=positive_int, default=320, help="working width, px (default 320)"
+    )
+    group.add_argument(
+        "--height", type=positive_int, help="working height, px (default: keep the aspect)"
+    )
+    group.add_argument("--step", type=positive_int, default=1, help="use every STEP-th frame")
+    group.add_argument("--max-frames", type=positive_int, help="use at most this many frames")
     group.add_argument("--no-depth", action="store_true", help="ignore depth/")
     group.add_argument("--no-rgb", action="store_true", help="no colour score")
-    group.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    group.add_argument("--seed", type=seed, default=0, help="random seed (default 0)")
     out = parser.add_argument_group("output")
     out.add_argument("--json", action="store_true", help="print one JSON document instead")
     out.add_argument("--poses-out", type=Path, metavar="FILE", help="estimated poses, for evo")
@@ -113,30 +136,36 @@ def add_parser(commands) -> None:
 
 
 def _config(args: argparse.Namespace):
-    from jaxloc.sg2loc import SG2LocConfig
+    """The offline (:class:`~jaxloc.sg2loc.SG2LocConfig`) or, with ``--online``, the streaming
+    (:class:`~jaxloc.sg2loc.online.OnlineConfig`) settings of the options."""
+    from jaxloc.sg2loc import SG2LocConfig, online
     from jaxloc.sg2loc.particles import PAPER_HEIGHTS
     from jaxloc.sg2loc.resampling import KLDConfig
 
-    if args.particles < 1:
-        raise InputError(f"--particles must be >= 1, got {args.particles}")
+    heights = tuple(PAPER_HEIGHTS if args.heights is None else args.heights)
+    kld = KLDConfig(min_particles=min(500, args.particles), max_particles=args.particles)
     try:
+        if args.online:
+            return online.OnlineConfig(
+                capacity=args.particles, stride=args.strides[0], heights=heights, kld=kld
+            )
         return SG2LocConfig(
             capacity=args.particles,
             strides=tuple(args.strides),
             box_half_widths=tuple(args.boxes),
-            heights=tuple(PAPER_HEIGHTS if args.heights is None else args.heights),
-            kld=KLDConfig(min_particles=min(500, args.particles), max_particles=args.particles),
+            heights=heights,
+            kld=kld,
         )
     except ValueError as error:
         raise InputError(str(error)) from None
 
 
-def _refine_last(scene, folder, result) -> dict:
+def _refine_last(scene, folder, last_pose) -> dict:
     from jaxloc.io import camera_pose_matrices
     from jaxloc.metrics import position_error, rotation_error_deg
     from jaxloc.sg2loc.refine import refine
 
-    refined = refine(scene, folder.sequence, result.poses[-1])
+    refined = refine(scene, folder.sequence, last_pose)
     T = np.asarray(refined.pose.as_matrix(), np.float64)
     out = {"ok": bool(refined.ok), "status": int(refined.status), "T_world_cam": T.tolist()}
     if folder.poses_gt is not None:
@@ -173,15 +202,30 @@ def _load_recording(args: argparse.Namespace):
     )
 
 
+def _localize(key, scene, seq, config, args):
+    """The coarse-to-fine rounds (:func:`~jaxloc.sg2loc.localize`) or, with ``--online``, the
+    stream (:func:`~jaxloc.sg2loc.online.filter_sequence`) of the sequence."""
+    from tqdm.auto import tqdm
+
+    from jaxloc.sg2loc import localize, online
+
+    if not args.online:
+        return localize(key, scene, seq, config, progress=not args.no_progress)
+    with tqdm(total=seq.num_frames, unit="frame", disable=args.no_progress) as bar:
+        return online.filter_sequence(key, scene, seq, config, progress=lambda t: bar.update(1))
+
+
 def run_localize_camera(args: argparse.Namespace) -> int:
     import jax
 
     from jaxloc.io import write_camera_poses
     from jaxloc.io.scene_map import load_scene
     from jaxloc.metrics import summarize, yaw_pose_errors
-    from jaxloc.sg2loc import localize
     from jaxloc.sg2loc.figures import plot_rounds
+    from jaxloc.sg2loc.scores import SSIM_WINDOW
 
+    if args.online and args.plot is not None:
+        raise InputError("--plot draws the coarse-to-fine rounds; there are none with --online")
     config = _config(args)
     try:
         scene = load_scene(args.map)
@@ -192,13 +236,13 @@ def run_localize_camera(args: argparse.Namespace) -> int:
     if args.refine and seq.depth is None:
         raise InputError(f"--refine needs depth images in {args.seq_dir} (and no --no-depth)")
     if seq.rgb is not None:
-        for stride in args.strides:
-            rays = (-(-seq.camera.width // stride), -(-seq.camera.height // stride))
-            if min(rays) < 7:
+        for stride in args.strides[:1] if args.online else args.strides:
+            rows, cols = ray_grid_shape(stride, seq.camera.width, seq.camera.height)
+            if min(rows, cols) < SSIM_WINDOW:
                 raise InputError(
-                    f"stride {stride} casts {rays[0]}x{rays[1]} rays at {seq.camera.width}x"
-                    f"{seq.camera.height} px; the colour score (SSIM) needs 7x7: use smaller "
-                    "--strides, a larger --width, or --no-rgb"
+                    f"--strides: stride {stride} casts {cols}x{rows} rays at {seq.camera.width}x"
+                    f"{seq.camera.height} px; the colour score (SSIM) needs {SSIM_WINDOW}x"
+                    f"{SSIM_WINDOW}: use smaller --strides, a larger --width, or --no-rgb"
                 )
     if not args.json:
         print(
@@ -208,15 +252,18 @@ def run_localize_camera(args: argparse.Namespace) -> int:
             f"{seq.camera.width}x{seq.camera.height} px, {seq.patch_shape[0]}x"
             f"{seq.patch_shape[1]} patches, depth {'yes' if seq.depth is not None else 'no'}"
         )
-    result = localize(jax.random.key(args.seed), scene, seq, config, progress=not args.no_progress)
-    poses = np.asarray(result.poses, np.float64)
+    result = _localize(jax.random.key(args.seed), scene, seq, config, args)
+    poses = np.asarray(result.pose if args.online else result.poses, np.float64)
+    localized = np.asarray(result.localized, bool)
     report: dict = {
         "map": str(args.map),
         "sequence": str(args.seq_dir),
         "format": folder.format,
         "frames": list(folder.frame_ids),
         "skipped": list(folder.skipped),
+        "mode": "online" if args.online else "offline",
         "poses": poses.tolist(),
+        "localized": localized.tolist(),
     }
     errors = None
     if folder.poses_gt is not None:
@@ -226,7 +273,7 @@ def run_localize_camera(args: argparse.Namespace) -> int:
         report["all_frames"] = summarize(*errors)
         report["last_frame"] = summarize(errors[0][-1:], errors[1][-1:])
     if args.refine:
-        report["refined"] = _refine_last(scene, folder, result)
+        report["refined"] = _refine_last(scene, folder, poses[-1])
     if args.poses_out is not None:
         write_camera_poses(args.poses_out, folder, poses, args.pose_format)
         report["poses_out"] = str(args.poses_out)
@@ -237,10 +284,15 @@ def run_localize_camera(args: argparse.Namespace) -> int:
         return 0
     for t, number in enumerate(folder.frame_ids):
         x, y, z, yaw = poses[t]
-        line = f"frame {number}: x {x:.3f} y {y:.3f} z {z:.3f} m, yaw {np.degrees(yaw):.1f} deg"
+        verdict = "localized" if localized[t] else "NOT localized"
+        line = (
+            f"frame {number}: {verdict}, x {x:.3f} y {y:.3f} z {z:.3f} m, "
+            f"yaw {np.degrees(yaw):.1f} deg"
+        )
         if errors is not None:
             line += f" | error {errors[0][t]:.3f} m, {errors[1][t]:.2f} deg"
         print(line)
+    print(f"localized: {int(localized.sum())} of {len(localized)} frames")
     for name in ("all_frames", "last_frame"):
         if name in report:
             values = ", ".join(f"{k} {v:.3f}" for k, v in report[name].items())

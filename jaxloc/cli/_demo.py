@@ -32,6 +32,33 @@ def ray_grid_shape(stride: int, width: int, height: int) -> tuple[int, int]:
     return len(range(stride // 2, height, stride)), len(range(stride // 2, width, stride))
 
 
+def fits_ssim(stride: int, width: int, height: int) -> bool:
+    """Whether ``stride`` casts at least SSIM's 7 x 7 rays on a width x height image."""
+    from jaxloc.sg2loc.scores import SSIM_WINDOW
+
+    return min(ray_grid_shape(stride, width, height)) >= SSIM_WINDOW
+
+
+def largest_fitting_stride(width: int, height: int, upper: int) -> int | None:
+    """The largest stride <= ``upper`` whose ray grid holds SSIM's window (None: not even 1)."""
+    return next((s for s in range(upper, 0, -1) if fits_ssim(s, width, height)), None)
+
+
+def check_image_size(args: argparse.Namespace) -> None:
+    """``--width`` and ``--height`` of the demo's room (and ``bench filter``'s): the image must
+    hold the synthetic sensor's patch grid (9 x 16 patches, at least one pixel each), an
+    InputError naming the options otherwise."""
+    from jaxloc.cli._errors import InputError
+    from jaxloc.synthetic.indoor import SensorConfig
+
+    rows, cols = SensorConfig.patch_rows, SensorConfig.patch_cols
+    if args.width < cols or args.height < rows:
+        raise InputError(
+            f"--width {args.width} --height {args.height}: the image must hold the "
+            f"{rows} x {cols} patch grid (want --width >= {cols} and --height >= {rows})"
+        )
+
+
 def fitting_strides(args: argparse.Namespace) -> tuple[int, ...]:
     """The rounds' strides for ``args.width x args.height``: ``--strides`` as given (an
     InputError naming the largest stride that fits if one gives fewer than 7 x 7 rays), else the
@@ -39,10 +66,8 @@ def fitting_strides(args: argparse.Namespace) -> tuple[int, ...]:
     from jaxloc.cli._errors import InputError
     from jaxloc.sg2loc.scores import SSIM_WINDOW
 
-    def fits(stride: int) -> bool:
-        return min(ray_grid_shape(stride, args.width, args.height)) >= SSIM_WINDOW
-
-    largest = next((s for s in range(max(PAPER_STRIDES), 0, -1) if fits(s)), None)
+    given = () if args.strides is None else tuple(args.strides)
+    largest = largest_fitting_stride(args.width, args.height, max(PAPER_STRIDES + given))
     if largest is None:
         raise InputError(
             f"--width {args.width} --height {args.height}: the image is too small for the colour "
@@ -51,7 +76,7 @@ def fitting_strides(args: argparse.Namespace) -> tuple[int, ...]:
         )
     if args.strides is None:
         return tuple(min(s, largest) for s in PAPER_STRIDES)
-    too_coarse = [s for s in args.strides if not fits(s)]
+    too_coarse = [s for s in given if not fits_ssim(s, args.width, args.height)]
     if too_coarse:
         rows, cols = ray_grid_shape(too_coarse[0], args.width, args.height)
         raise InputError(
@@ -59,7 +84,14 @@ def fitting_strides(args: argparse.Namespace) -> tuple[int, ...]:
             f"{args.width} x {args.height}, smaller than SSIM's {SSIM_WINDOW} x {SSIM_WINDOW} "
             f"window; use strides of at most {largest}"
         )
-    return tuple(args.strides)
+    return given
+
+
+def check_demo(args: argparse.Namespace) -> None:
+    """The demo's options that depend on each other, before anything is built: the image holds
+    the patch grid, the strides fit it (:func:`fitting_strides`)."""
+    check_image_size(args)
+    fitting_strides(args)
 
 
 def run_demo(args: argparse.Namespace) -> int:

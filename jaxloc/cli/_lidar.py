@@ -116,15 +116,6 @@ def triplet_config(args: argparse.Namespace):
     return m2loc_config(args.scales or DEFAULT_SCALES, **options)
 
 
-def check_config_args(args: argparse.Namespace) -> None:
-    if args.k is not None and args.k < 1:
-        raise InputError(f"-k must be >= 1, got {args.k}")
-    if args.threshold is not None and not args.threshold > 0:
-        raise InputError(f"--threshold must be > 0 metres, got {args.threshold}")
-    if args.min_clique is not None and args.min_clique < 1:
-        raise InputError(f"--min-clique must be >= 1, got {args.min_clique}")
-
-
 def notes_of_small_maps(command: str, name: str):
     """A context manager that turns :class:`jaxloc.m2loc.SmallMapWarning` into one note per
     warning on stderr (a clamped ``top_k`` is not an error)."""
@@ -186,6 +177,14 @@ def check_save_path(path: Path | None) -> None:
     """Before any work: a ``--save-map`` path must name an ``.npz`` file."""
     if path is not None and path.suffix != ".npz":
         raise InputError(f"--save-map {path}: the file name must end in .npz")
+
+
+def check_localize_lidar(args: argparse.Namespace) -> None:
+    """The options of ``localize-lidar`` that depend on each other or on the file system, before
+    the map or any scan is read (the values themselves are checked where they are parsed)."""
+    check_save_path(args.save_map)
+    check_poses_out(args)
+    drive_options(args)
 
 
 def _scan_record(recording, index: int, step, track: bool) -> dict:
@@ -265,12 +264,7 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
     from jaxloc.io import open_lidar_recording, save_triplet_map, write_lidar_poses
     from jaxloc.m2loc import SUCCESS_RRE_DEG, SUCCESS_RTE_M, localize_drive
 
-    check_config_args(args)
-    check_save_path(args.save_map)
-    check_poses_out(args)
-    if args.every < 1:
-        raise InputError(f"--every must be >= 1, got {args.every}")
-    accumulate, drive_config = drive_options(args)
+    accumulate, drive_config = drive_options(args)  # checked by check_localize_lidar
     with reading():
         recording = open_lidar_recording(
             args.scans, layout=args.format, sensor=args.sensor, every=args.every, gt=args.gt

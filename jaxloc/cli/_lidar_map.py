@@ -59,17 +59,19 @@ exit status: 0 on success, 2 on missing or malformed files or bad options (one-l
 """
 
 
+def check_build_lidar_map(args: argparse.Namespace) -> None:
+    """Before any work: ``--save-map`` names an ``.npz``, ``OUT_DIR`` is not a file."""
+    check_save_path(args.save_map)
+    if args.out_dir.exists() and not args.out_dir.is_dir():
+        raise InputError(f"{args.out_dir}: exists and is not a folder")
+
+
 def run_build_lidar_map(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from jaxloc.io import save_lidar_maps, save_triplet_map
     from jaxloc.mapping import MapBuildConfig, build_lidar_maps
 
-    if args.every < 1:
-        raise InputError(f"--every must be >= 1, got {args.every}")
-    check_save_path(args.save_map)
-    if args.out_dir.exists() and not args.out_dir.is_dir():
-        raise InputError(f"{args.out_dir}: exists and is not a folder")
     start = time.perf_counter()
     sequence = open_sequence(args.seq_dir, args)
     used = len(sequence.bins[:: args.every])

@@ -11,6 +11,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 from jaxloc.cli._errors import InputError
+from jaxloc.cli._options import count, positive_int
 
 #: What ``--format`` accepts (:data:`jaxloc.io.lidar_sequence.LAYOUTS`).
 SEQUENCE_FORMATS = ("semantickitti", "plain", "helipr")
@@ -63,6 +64,46 @@ def add_sequence_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_drive_options(parser: argparse.ArgumentParser) -> None:
+    """``--accumulate``, ``--window-instances``, ``--accumulate-max``, ``--odometry`` and
+    ``--track``: how the scans of a drive are localized (:func:`drive_options`)."""
+    parser.add_argument(
+        "--accumulate",
+        type=positive_int,
+        default=1,
+        metavar="K",
+        help="localize each scan with the instances of the last K >= 1 scans fused through "
+        "odometry (default 1: each scan alone); the window grows with older scans while it holds "
+        "few instances (--window-instances, --accumulate-max)",
+    )
+    parser.add_argument(
+        "--window-instances",
+        type=count,
+        metavar="N",
+        help="with --accumulate K: add older scans while the fused window holds fewer than N >= 0 "
+        "instances (default: jaxloc.m2loc.WINDOW_MIN_INSTANCES; 0: exactly K scans)",
+    )
+    parser.add_argument(
+        "--accumulate-max",
+        type=positive_int,
+        metavar="M",
+        help="with --accumulate K: the most scans a window grows to, M >= K (default 2K)",
+    )
+    parser.add_argument(
+        "--odometry",
+        type=Path,
+        metavar="FILE",
+        help="odometry for --accumulate and --track: poses in any format --gt takes (default: "
+        "the sequence's own poses)",
+    )
+    parser.add_argument(
+        "--track",
+        action="store_true",
+        help="track the drive: after a verified pose, localize the next scans near the odometry "
+        "prediction (milliseconds), global localization when that fails",
+    )
+
+
 def add_pose_output_options(parser: argparse.ArgumentParser) -> None:
     """``--poses-out`` and ``--pose-format`` (see :data:`POSES_OUT_HELP`)."""
     parser.add_argument(
@@ -112,13 +153,12 @@ def check_poses_out(args: argparse.Namespace) -> None:
 
 def drive_options(args: argparse.Namespace):
     """``--accumulate K --accumulate-max M --window-instances N`` (and that ``--odometry`` is
-    used), checked, as ``(K, jaxloc.m2loc.DriveConfig)`` (M = 2K and N =
-    :data:`jaxloc.m2loc.WINDOW_MIN_INSTANCES` by default)."""
+    used), checked against each other, as ``(K, jaxloc.m2loc.DriveConfig)`` (M = 2K and N =
+    :data:`jaxloc.m2loc.WINDOW_MIN_INSTANCES` by default; K, M >= 1 and N >= 0 are checked where
+    they are parsed, :func:`add_drive_options`)."""
     from jaxloc.m2loc import DriveConfig
 
     least, most, instances = args.accumulate, args.accumulate_max, args.window_instances
-    if least < 1:
-        raise InputError(f"--accumulate must be >= 1, got {least}")
     if args.odometry is not None and least == 1 and not args.track:
         raise InputError("--odometry is only used with --accumulate K > 1 or --track")
     if least == 1:
@@ -128,8 +168,6 @@ def drive_options(args: argparse.Namespace):
         return 1, DriveConfig()
     if most is not None and most < least:
         raise InputError(f"--accumulate-max must be >= --accumulate ({least}), got {most}")
-    if instances is not None and instances < 0:
-        raise InputError(f"--window-instances must be >= 0, got {instances}")
     if instances is None:
         return least, DriveConfig(most_scans=most)
     return least, DriveConfig(most_scans=most, min_instances=instances)

@@ -7,6 +7,7 @@ import argparse
 from pathlib import Path
 
 from jaxloc.cli._errors import InputError
+from jaxloc.cli._options import at_least
 
 DESCRIPTION = """\
 Build a scene graph (one coarse mesh, class, colour and embedding per object; the floor and the
@@ -64,7 +65,10 @@ def add_parser(commands) -> None:
         "--embeddings-by", choices=("label", "object"), default="label", help="table keys"
     )
     parser.add_argument(
-        "--target-vertices", type=int, default=860, help="vertices per object (default 860)"
+        "--target-vertices",
+        type=at_least(4),
+        default=860,
+        help="vertices per object, >= 4 (default 860)",
     )
 
 
@@ -74,8 +78,6 @@ def run_build_scene_graph(args: argparse.Namespace) -> int:
     from jaxloc.io import load_embedding_table, read_3rscan, read_generic, read_scannet, save_scene
     from jaxloc.mapping import class_embeddings, onehot_classes, scene_graph_from_reconstruction
 
-    if args.target_vertices < 4:
-        raise InputError(f"--target-vertices must be >= 4, got {args.target_vertices}")
     try:
         if args.format == "scannet":
             recon = read_scannet(args.scan, args.label_table, args.label_column)

@@ -47,6 +47,7 @@ from jaxloc.sg2loc.filter import Frame, Region, StepConfig, check_particle_chunk
 from jaxloc.sg2loc.particles import PAPER_HEIGHTS, ParticleState, init_region, inject_uniform
 from jaxloc.sg2loc.resampling import KLDConfig
 from jaxloc.sg2loc.scores import ObservationConfig
+from jaxloc.sg2loc.sequence import Sequence
 from jaxloc.sg2loc.verdict import Verdict, VerdictConfig
 
 #: Traces of the compiled update (a Python side effect runs only while tracing): one per
@@ -344,3 +345,48 @@ def _update(state, observation, patches, motion, depth, rgb, tilt):
         motion_valid=info.motion_valid,
     )
     return state, estimate
+
+
+def filter_sequence(
+    key: Array,
+    scene: SceneGraph,
+    sequence: Sequence,
+    config: OnlineConfig | None = None,
+    *,
+    progress=None,
+) -> Estimate:
+    """A recorded sequence fed to the stream frame by frame (:func:`init`, then :func:`update`
+    per frame): what a camera delivering these frames one at a time would have been told.
+
+    Args:
+        key: PRNG key (as for :func:`init`).
+        scene: the map.
+        sequence: the frames (:class:`~jaxloc.sg2loc.sequence.Sequence`; its depth and colour are
+            used when present and ``config.observation`` uses them).
+        config: :class:`OnlineConfig`; its ``patch_shape`` is taken from the sequence.
+        progress: optional callable ``progress(t)`` after each frame (e.g. a progress bar's
+            ``update``).
+
+    Returns:
+        The :class:`Estimate` of every frame, stacked on a leading (T,) axis (host arrays).
+    """
+    if not isinstance(sequence, Sequence):
+        raise TypeError(f"sequence must be a jaxloc.Sequence, got {type(sequence).__name__}")
+    config = OnlineConfig() if config is None else config
+    config = dataclasses.replace(config, patch_shape=tuple(sequence.patch_shape))
+    state = init(key, scene, sequence.camera, config)
+    estimates = []
+    for t in range(sequence.num_frames):
+        motion = np.zeros(4, np.float32) if t == 0 else sequence.ego_motion[t - 1]
+        state, estimate = update(
+            state,
+            sequence.patch_embeddings[t],
+            motion,
+            depth=None if sequence.depth is None else sequence.depth[t],
+            rgb=None if sequence.rgb is None else sequence.rgb[t],
+            tilt=sequence.tilt[t],
+        )
+        estimates.append(estimate)
+        if progress is not None:
+            progress(t)
+    return jax.tree.map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *estimates)
