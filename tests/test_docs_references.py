@@ -24,29 +24,6 @@ _spec = importlib.util.spec_from_file_location("griffe_roles", REPO / "docs" / "
 roles = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(roles)
 
-#: Constants without a description in modules that are being edited elsewhere (issue 36: their
-#: descriptions are proposed there); drop a name once its module gives it a ``#:`` comment.
-PENDING = {
-    "jaxloc.io.camera_sequence.CAMERA_FORMATS",
-    "jaxloc.io.lidar_map.FORMAT_NAME",
-    "jaxloc.io.lidar_map.FORMAT_VERSION",
-    "jaxloc.io.meshes.PathLike",
-    "jaxloc.io.reconstruction.PathLike",
-    "jaxloc.io.scannet.SCANNET_LABEL_TABLE",
-    "jaxloc.io.scannet_sens.COLOR_COMPRESSION",
-    "jaxloc.io.scannet_sens.DEPTH_COMPRESSION",
-    "jaxloc.io.scannet_sens.VERSION",
-    "jaxloc.io.scene_map.FORMAT_NAME",
-    "jaxloc.io.scene_map.FORMAT_VERSION",
-    "jaxloc.sg2loc.scores.COLOR_MAX",
-    "jaxloc.sg2loc.scores.COLOR_VARIANTS",
-    "jaxloc.sg2loc.scores.DEPTH_MAX",
-    "jaxloc.sg2loc.scores.DEPTH_VARIANTS",
-    "jaxloc.sg2loc.scores.SEMANTIC_VARIANTS",
-    "jaxloc.sg2loc.scores.SSIM_C2",
-    "jaxloc.sg2loc.scores.SSIM_WINDOW",
-}
-
 
 def load(*extensions):
     return griffe.load(
@@ -129,7 +106,7 @@ def test_every_public_constant_has_a_description(loaded):
             obj.docstring and obj.docstring.value.strip()
         ):
             missing.append(obj.path)
-    assert set(missing) - PENDING == set(), "constants without a description"
+    assert missing == [], "constants without a description"
     assert "jaxloc.scene.MIN_TRIANGLE_AREA" not in missing  # a ``#:`` comment counts
 
 

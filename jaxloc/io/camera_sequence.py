@@ -55,6 +55,7 @@ from jaxloc.io.scannet_sens import open_sens
 from jaxloc.io.scene_map import ClassEmbeddings
 from jaxloc.sg2loc.sequence import Sequence
 
+#: The camera recording layouts read (and detected): the ``format=`` of the camera openers.
 CAMERA_FORMATS = ("scannet-export", "sens", "3rscan")
 
 

@@ -37,7 +37,9 @@ from jaxloc.m2loc import (
     map_grid,
 )
 
+#: The ``format`` entry of a triplet-map file (a file without it is refused).
 FORMAT_NAME = "jaxloc.TripletMap"
+#: The triplet-map file version this module writes and reads.
 FORMAT_VERSION = 1
 
 # name: (dtype, shape with -1 for "any"; N vertices, S scales, D dim, M RSN cells checked after)

@@ -31,6 +31,7 @@ import trimesh
 from jaxloc.io._text import data_lines, parse_finite_floats
 from jaxloc.scene import Capacity, SceneGraph
 
+#: A file path: ``str`` or ``os.PathLike``.
 PathLike = str | os.PathLike
 
 

@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 import trimesh
 
+#: A file path: ``str`` or ``os.PathLike``.
 PathLike = str | os.PathLike
 
 

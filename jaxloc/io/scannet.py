@@ -27,6 +27,7 @@ from jaxloc.io.reconstruction import (
     seg_groups,
 )
 
+#: ScanNet's label table, looked for in the scan folder and its parent when none is given.
 SCANNET_LABEL_TABLE = "scannetv2-labels.combined.tsv"
 
 

@@ -41,8 +41,11 @@ from jaxloc.io.camera_frames import (
     checked_pose,
 )
 
+#: The ``.sens`` (SensorData) file version this reader accepts.
 VERSION = 4
+#: ``.sens`` colour compression codes and their names.
 COLOR_COMPRESSION = {0: "raw", 1: "png", 2: "jpeg"}
+#: ``.sens`` depth compression codes this reader supports (not occi, code 2).
 DEPTH_COMPRESSION = {0: "raw_ushort", 1: "zlib_ushort"}
 _FRAME_HEADER = struct.Struct("<16f4Q")
 #: The largest image side a header may state (a damaged size cannot allocate terabytes).

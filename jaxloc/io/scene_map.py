@@ -19,7 +19,9 @@ from jaxloc.io._map_file import read_map_file
 from jaxloc.io.errors import MapFormatError
 from jaxloc.scene import Capacity, SceneGraph
 
+#: The ``format`` entry of a scene-graph map file (a file without it is refused).
 FORMAT_NAME = "jaxloc.SceneGraph"
+#: The scene-graph map file version this module writes and reads.
 FORMAT_VERSION = 1
 
 _SAVED = {

@@ -25,18 +25,25 @@ from jax import Array
 
 from jaxloc.sg2loc._convert import as_float32
 
+#: Semantic score variants (``ObservationConfig.semantic_variant``; "gated" the default).
 SEMANTIC_VARIANTS = ("gated", "soft")
+#: Depth score variants (``ObservationConfig.depth_variant``): "l1" (paper, default), "clipped".
 DEPTH_VARIANTS = ("l1", "clipped")
+#: Colour score variants (``ObservationConfig.color_variant``): "paper" (default), "reference".
 COLOR_VARIANTS = ("paper", "reference")
 
-#: Best attainable score of each variant.
+#: Best attainable semantic score (both variants).
 SEMANTIC_MAX = 2.0
+#: Best attainable depth score of each variant (also the score of a frame without valid depth).
 DEPTH_MAX = {"l1": 1.0, "clipped": 2.0}
+#: Best attainable colour score of each variant.
 COLOR_MAX = {"paper": 1.0, "reference": 2.0}
 
-#: SSIM constants for values in [0, 1] (Wang et al. 2004; K1 = 0.01, K2 = 0.03, L = 1).
+#: SSIM's luminance constant ``(K1 L)^2`` for values in [0, 1] (Wang et al. 2004; K1 = 0.01).
 SSIM_C1 = 0.01**2
+#: SSIM's contrast constant ``(K2 L)^2`` for values in [0, 1] (K2 = 0.03).
 SSIM_C2 = 0.03**2
+#: Side of SSIM's box window (rays): a colour score needs a ray grid at least this big.
 SSIM_WINDOW = 7
 
 
