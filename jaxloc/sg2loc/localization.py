@@ -38,7 +38,7 @@ from jaxloc.sg2loc.particles import DEFAULT_BOX_YAW_HALF_RANGE, PAPER_HEIGHTS, i
 from jaxloc.sg2loc.resampling import KLDConfig
 from jaxloc.sg2loc.scores import ObservationConfig
 from jaxloc.sg2loc.sequence import Sequence
-from jaxloc.sg2loc.verdict import VerdictConfig
+from jaxloc.sg2loc.verdict import VerdictConfig, default_verdict
 from jaxloc.sharding import check_divisible, pin_split
 
 
@@ -65,7 +65,8 @@ class SG2LocConfig(eqx.Module):
         particle_chunk: particles rendered together (static; ``StepConfig.particle_chunk``:
             None sizes chunks to ``jaxloc.sg2loc.filter.CHUNK_RAYS`` rays).
         verdict: thresholds of the per-frame verdict
-            (:class:`~jaxloc.sg2loc.verdict.VerdictConfig`).
+            (:class:`~jaxloc.sg2loc.verdict.VerdictConfig`; None: the preset for whether the
+            sequence's depth is used, :func:`~jaxloc.sg2loc.verdict.default_verdict`).
     """
 
     capacity: int = eqx.field(static=True, default=2500)
@@ -84,7 +85,7 @@ class SG2LocConfig(eqx.Module):
     )
     engine: str = eqx.field(static=True, default="auto")
     particle_chunk: int | None = eqx.field(static=True, default=None)
-    verdict: VerdictConfig = VerdictConfig()
+    verdict: VerdictConfig | None = None
 
     def __check_init__(self):
         check_engine_name(self.engine)
@@ -253,7 +254,7 @@ def localize(
             heights=config.heights,
             engine=config.engine,
             particle_chunk=config.particle_chunk,
-            verdict=config.verdict,
+            verdict=default_verdict(used_depth) if config.verdict is None else config.verdict,
             mesh=mesh,
         )
         init_args = (

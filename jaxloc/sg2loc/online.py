@@ -48,7 +48,7 @@ from jaxloc.sg2loc.particles import PAPER_HEIGHTS, ParticleState, init_region, i
 from jaxloc.sg2loc.resampling import KLDConfig
 from jaxloc.sg2loc.scores import ObservationConfig
 from jaxloc.sg2loc.sequence import Sequence
-from jaxloc.sg2loc.verdict import Verdict, VerdictConfig
+from jaxloc.sg2loc.verdict import Verdict, VerdictConfig, default_verdict
 
 #: Traces of the compiled update (a Python side effect runs only while tracing): one per
 #: combination of the inputs given (depth, colour) and of the state's shapes.
@@ -62,7 +62,9 @@ class OnlineConfig(eqx.Module):
         capacity: particle buffer size (static; paper 2500).
         stride: pixel stride of the ray grid (static; the coarse round's 20).
         patch_shape: (rows, cols) of the patch grid of the embeddings (static; paper 9 x 16).
-        observation, kld, verdict: as in :class:`~jaxloc.sg2loc.SG2LocConfig`.
+        observation, kld: as in :class:`~jaxloc.sg2loc.SG2LocConfig`.
+        verdict: the verdict's thresholds (None: the preset for each frame, with or without
+            depth: :func:`~jaxloc.sg2loc.verdict.default_verdict`).
         sigma_trans, sigma_rot: motion noise (metres, radians).
         region: where the particles start and where relocalization puts them (default: the
             map's floor bounds).
@@ -78,7 +80,7 @@ class OnlineConfig(eqx.Module):
     patch_shape: tuple[int, int] = eqx.field(static=True, default=(9, 16))
     observation: ObservationConfig = ObservationConfig()
     kld: KLDConfig = KLDConfig()
-    verdict: VerdictConfig = VerdictConfig()
+    verdict: VerdictConfig | None = None
     sigma_trans: Array = eqx.field(default=0.05, converter=as_float32)
     sigma_rot: Array = eqx.field(default=0.05, converter=as_float32)
     region: Region | None = None
@@ -120,6 +122,7 @@ class OnlineState(eqx.Module):
         camera: the query camera.
         pixels: (2, R) int32 the image row and column of each ray of the grid.
         config: the step's configuration (grid, observation model, thresholds).
+        verdict: the verdict's thresholds given to :func:`init` (None: each frame's preset).
         relocalize_after, relocalize_count: the relocalization policy (see the module docstring).
     """
 
@@ -131,6 +134,7 @@ class OnlineState(eqx.Module):
     camera: Camera
     pixels: Array
     config: StepConfig
+    verdict: VerdictConfig | None
     relocalize_after: Array
     relocalize_count: Array
 
@@ -196,7 +200,9 @@ def init(
         heights=config.heights,
         engine=config.engine,
         particle_chunk=config.particle_chunk,
-        verdict=config.verdict,
+        verdict=default_verdict(config.observation.use_depth)
+        if config.verdict is None
+        else config.verdict,
     )
     pixels = jnp.asarray(np.stack(grid_pixels(camera, step_config.grid)), jnp.int32)
     key_init, key_run = _round_keys(key)
@@ -212,6 +218,7 @@ def init(
         camera=camera,
         pixels=pixels,
         config=step_config,
+        verdict=config.verdict,
         relocalize_after=config.relocalize_after,
         relocalize_count=config.relocalize_count,
     )
@@ -289,7 +296,8 @@ def update(
 @eqx.filter_jit
 def _update(state, observation, patches, motion, depth, rgb, tilt):
     TRACE_COUNTS["update"] += 1
-    config = dataclasses.replace(state.config, observation=observation)
+    verdict = default_verdict(observation.use_depth) if state.verdict is None else state.verdict
+    config = dataclasses.replace(state.config, observation=observation, verdict=verdict)
     pixel_rows, pixel_cols = state.pixels
     h, w = config.grid.shape
     frame = Frame(

@@ -20,10 +20,11 @@ max_depth_deficit & color >= min_color`` (a term whose score the filter does not
 and never on a degenerate update. A high effective sample size after the update means the
 likelihood hardly tells the particles apart: nothing explains the frame much better than anything
 else. The thresholds
-(:class:`VerdictConfig`) are traced, so a sweep does not recompile; the defaults were chosen on
-development rooms and look-alike wrong places (``experiments/sg2loc_verdict.py``) for the paper's
-observation model and image size, and their precision and recall on rooms not used for the choice
-are in docs/pages/sg2loc.md.
+(:class:`VerdictConfig`) are traced, so a sweep does not recompile; the presets
+(:data:`VERDICT_WITH_DEPTH`, :data:`VERDICT_WITHOUT_DEPTH`) were chosen on development rooms and
+look-alike wrong places (``experiments/sg2loc_verdict.py``) for the paper's observation model and
+image size, and their precision and recall on rooms not used for the choice are in
+docs/pages/sg2loc.md.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from typing import NamedTuple
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from jaxloc.geometry import wrap_angle
@@ -49,12 +51,8 @@ from jaxloc.sg2loc.scores import (
 class VerdictConfig(eqx.Module):
     """Thresholds of the per-frame verdict (traced float32 scalars; see the module docstring).
 
-    The defaults were chosen on 20 development rooms and their look-alike wrong places at the
-    paper's settings, offline and streaming (``experiments/sg2loc_verdict.py --choose dev``): the
-    most frames within 0.25 m and 5 degrees flagged while >= 97 % of flagged frames are within
-    0.5 m and 10 degrees and <= 2 % of wrong-place frames are flagged, with and without depth.
-    The colour score is not required (``min_color`` 0): SSIM against a coarse mesh's colours is
-    the score least likely to carry over from synthetic rooms to real images.
+    The defaults are :data:`VERDICT_WITH_DEPTH`'s; :func:`default_verdict` picks the preset for
+    a sequence with or without depth.
 
     Attributes:
         max_spread_xy: largest horizontal spread ``hypot(spread_x, spread_y)`` (metres).
@@ -67,13 +65,37 @@ class VerdictConfig(eqx.Module):
         min_color: smallest colour score of the MLE (mean SSIM for the ``"paper"`` variant).
     """
 
-    max_spread_xy: Array = eqx.field(default=0.15, converter=as_float32)
+    max_spread_xy: Array = eqx.field(default=np.inf, converter=as_float32)
     max_spread_z: Array = eqx.field(default=0.05, converter=as_float32)
     max_spread_yaw: Array = eqx.field(default=0.08, converter=as_float32)
     max_ess_fraction: Array = eqx.field(default=0.4, converter=as_float32)
-    min_semantic_fraction: Array = eqx.field(default=0.72, converter=as_float32)
-    max_depth_deficit: Array = eqx.field(default=0.3, converter=as_float32)
+    min_semantic_fraction: Array = eqx.field(default=0.65, converter=as_float32)
+    max_depth_deficit: Array = eqx.field(default=0.15, converter=as_float32)
     min_color: Array = eqx.field(default=0.0, converter=as_float32)
+
+
+#: The verdict's thresholds for sequences with depth, chosen on 20 development rooms and their
+#: look-alike wrong places at the paper's settings, offline and streaming
+#: (``experiments/sg2loc_verdict.py --choose dev``): the most frames within 0.25 m and 5 degrees
+#: flagged while >= 99 % of the flagged frames are within 0.5 m and 10 degrees and <= 2 % of the
+#: wrong places' frames are flagged. The colour score is not required: SSIM against a coarse
+#: mesh's colours is the score least likely to carry over from synthetic rooms to real images.
+VERDICT_WITH_DEPTH = VerdictConfig()
+#: The thresholds for sequences without depth (stricter on the spread and the semantics), chosen
+#: the same way on a proxy: the development runs with the depth term left out of the verdict.
+VERDICT_WITHOUT_DEPTH = VerdictConfig(
+    max_spread_xy=0.2,
+    max_spread_z=0.1,
+    max_spread_yaw=0.05,
+    max_ess_fraction=0.2,
+    min_semantic_fraction=0.72,
+    max_depth_deficit=np.inf,
+)
+
+
+def default_verdict(use_depth: bool) -> VerdictConfig:
+    """:data:`VERDICT_WITH_DEPTH` or :data:`VERDICT_WITHOUT_DEPTH`."""
+    return VERDICT_WITH_DEPTH if use_depth else VERDICT_WITHOUT_DEPTH
 
 
 class Verdict(NamedTuple):
