@@ -40,6 +40,31 @@ jax.config.update(
     float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]),
 )
 
+#: Linux refuses a process new memory mappings beyond ``vm.max_map_count`` (65530 by default),
+#: and every program XLA:CPU compiles or loads from the cache holds some (a small one about 9; one
+#: M2Loc map build and query about 2200, its ~250 programs): a test worker that had run many
+#: modules' programs ended in "LLVM ERROR: Unable to allocate section memory" (SIGABRT) in
+#: whichever test compiled next. After a module, past this many mappings, the worker drops its
+#: compiled programs (``jax.clear_caches``); later modules trace again and load from the cache.
+MAX_MAPPINGS = 15_000
+
+
+def mappings() -> int:
+    """This process's memory mappings (Linux; 0 where /proc is absent)."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return maps.read().count(b"\n")
+    except OSError:
+        return 0
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _bounded_mappings():
+    yield
+    if mappings() > MAX_MAPPINGS:
+        jax.clear_caches()
+
+
 #: Number of rays of the standard random batch (one compiled shape for most raycast tests).
 NUM_RAYS = 2048
 

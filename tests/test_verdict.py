@@ -16,31 +16,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_filter import EPISODE_CONFIG, LOCALIZE_CONFIG  # the same room and localizer
 
 from jaxloc.metrics import yaw_pose_errors
-from jaxloc.sg2loc import SG2LocConfig, localize
+from jaxloc.sg2loc import localize
 from jaxloc.sg2loc.particles import ParticleState
 from jaxloc.sg2loc.scores import ObservationConfig, Scores, match_patches
 from jaxloc.sg2loc.verdict import VerdictConfig, best_semantic_score, judge, particle_spread
-from jaxloc.synthetic.indoor import (
-    EpisodeConfig,
-    RoomConfig,
-    SensorConfig,
-    make_episode,
-    make_lookalike_episode,
-)
-
-EPISODE_CONFIG = EpisodeConfig(
-    room=RoomConfig(
-        length_range=(4.0, 5.0),
-        width_range=(4.0, 5.0),
-        num_objects=(15, 18),
-        vertex_range=(100, 200),
-    ),
-    sensor=SensorConfig(width=160, height=90),
-)
-#: tests/test_filter.py's localizer and room (its compiled rounds are shared through the cache).
-LOCALIZE_CONFIG = SG2LocConfig(capacity=400, strides=(10, 8), box_half_widths=(0.8,))
+from jaxloc.synthetic.indoor import make_episode, make_lookalike_episode
 
 
 def random_state(seed: int, capacity: int = 64) -> ParticleState:
