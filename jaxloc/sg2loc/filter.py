@@ -40,6 +40,7 @@ from jaxloc.sg2loc.resampling import KLDConfig, kld_resample
 from jaxloc.sg2loc.scores import (
     SSIM_WINDOW,
     ObservationConfig,
+    PatchMatch,
     Scores,
     match_patches,
     particle_log_likelihood,
@@ -233,7 +234,9 @@ def frames_on_grid(sequence: Sequence, grid: RayGrid) -> Frame:
     )
 
 
-def _score_poses(poses: Array, frame: Frame, scene: SceneGraph, config: StepConfig) -> Scores:
+def _score_poses(
+    poses: Array, frame: Frame, scene: SceneGraph, config: StepConfig, match: PatchMatch
+) -> Scores:
     """Render ``poses`` (M, 4) (NaN rows: skipped, their rays miss) and score them: (M,) each."""
     # The filter never differentiates: the engine's own hit values (raycast's values-only path).
     views = render_batch(
@@ -245,7 +248,6 @@ def _score_poses(poses: Array, frame: Frame, scene: SceneGraph, config: StepConf
         engine=config.engine,
         differentiable=False,
     )
-    match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
     h, w = config.grid.shape
     return jax.vmap(
         lambda obj, depth, color: particle_log_likelihood(
@@ -261,38 +263,50 @@ def _score_poses(poses: Array, frame: Frame, scene: SceneGraph, config: StepConf
 
 
 def score_active(
-    state: ParticleState, frame: Frame, scene: SceneGraph, config: StepConfig
+    state: ParticleState,
+    frame: Frame,
+    scene: SceneGraph,
+    config: StepConfig,
+    match: PatchMatch | None = None,
 ) -> Scores:
     """Scores (N,) of the active particles of ``state`` against ``frame``; the scores of inactive
-    slots are meaningless (the caller masks them).
+    slots are meaningless (the caller masks them). ``match``: the frame's
+    :func:`~jaxloc.sg2loc.scores.match_patches` (computed here when None).
 
     The active particles are gathered to the front and rendered ``config.chunk_size(N)`` at a
     time in a ``lax.while_loop`` that stops after the last chunk holding one (a chunk size >= N
     renders every slot in one call instead). With ``config.mesh`` every device does this for its
     own shard of the buffer.
     """
+    if match is None:
+        match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
     if config.mesh is None:
-        return _score_shard(state.poses, state.active, frame, scene, config)
+        return _score_shard(state.poses, state.active, frame, scene, config, match)
     split, whole = PartitionSpec(config.mesh.axis_names[0]), PartitionSpec()
     per_device = jax.shard_map(
         _score_shard,
         mesh=config.mesh,
-        in_specs=(split, split, whole, whole, whole),
+        in_specs=(split, split, whole, whole, whole, whole),
         out_specs=split,
         check_vma=False,
     )
-    return per_device(state.poses, state.active, frame, scene, config)
+    return per_device(state.poses, state.active, frame, scene, config, match)
 
 
 def _score_shard(
-    poses: Array, active: Array, frame: Frame, scene: SceneGraph, config: StepConfig
+    poses: Array,
+    active: Array,
+    frame: Frame,
+    scene: SceneGraph,
+    config: StepConfig,
+    match: PatchMatch,
 ) -> Scores:
     """:func:`score_active` of particles ``poses`` (M, 4) with mask ``active`` (M,)."""
     capacity = active.shape[0]
     chunk = config.chunk_size(capacity)
     if chunk >= capacity:
         # Inactive slots cast invalid (NaN) rays, which every engine retires at once.
-        return _score_poses(jnp.where(active[:, None], poses, jnp.nan), frame, scene, config)
+        return _score_poses(jnp.where(active[:, None], poses, jnp.nan), frame, scene, config, match)
     num_chunks = -(-capacity // chunk)
     order = jnp.argsort(~active, stable=True)  # active slots first, in slot order
     order = jnp.pad(order, (0, num_chunks * chunk - capacity))
@@ -305,7 +319,7 @@ def _score_shard(
         rank = i * chunk + jnp.arange(chunk)
         slots = jax.lax.dynamic_slice(order, (i * chunk,), (chunk,))
         chosen = jnp.where((rank < num_active)[:, None], poses[slots], jnp.nan)
-        found = _score_poses(chosen, frame, scene, config)
+        found = _score_poses(chosen, frame, scene, config, match)
         scores = jax.tree.map(
             lambda all_, part: jax.lax.dynamic_update_slice(all_, part, (i * chunk,)),
             scores,
@@ -334,13 +348,13 @@ def step(
     moved = predict(key_motion, state, motion, config.sigma_trans, config.sigma_rot)
     state = jax.tree.map(lambda a, b: jnp.where(frame.index > 0, a, b), moved, state)
 
-    scores = score_active(state, frame, scene, config)
+    match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
+    scores = score_active(state, frame, scene, config, match)
     log_likelihood = jnp.where(state.active, scores.log_likelihood, -jnp.inf)
     state, degenerate = update_weights(state, log_likelihood)
     best_pose, best = mle(state)
     mean_pose = weighted_mean(state)
     best_scores = jax.tree.map(lambda a: a[best], scores)
-    match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
     verdict = judge(state, best_scores, match, config.observation, config.verdict, degenerate)
 
     weighted = state

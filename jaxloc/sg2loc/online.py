@@ -121,7 +121,8 @@ class OnlineState(eqx.Module):
         scene: the map.
         camera: the query camera.
         pixels: (2, R) int32 the image row and column of each ray of the grid.
-        config: the step's configuration (grid, observation model, thresholds).
+        config: the step's configuration (grid, observation model); each frame's observation
+            model and thresholds are set by :func:`update` from the inputs given.
         verdict: the verdict's thresholds given to :func:`init` (None: each frame's preset).
         relocalize_after, relocalize_count: the relocalization policy (see the module docstring).
     """
@@ -200,9 +201,6 @@ def init(
         heights=config.heights,
         engine=config.engine,
         particle_chunk=config.particle_chunk,
-        verdict=default_verdict(config.observation.use_depth)
-        if config.verdict is None
-        else config.verdict,
     )
     pixels = jnp.asarray(np.stack(grid_pixels(camera, step_config.grid)), jnp.int32)
     key_init, key_run = _round_keys(key)

@@ -138,11 +138,10 @@ def particle_spread(state: ParticleState) -> Array:
     return jnp.sqrt(jnp.maximum(variance, 0.0))
 
 
-def best_semantic_score(match: PatchMatch, variant: str = "gated") -> Array:
+def best_semantic_score(match: PatchMatch) -> Array:
     """The semantic score of a view that shows every patch's best-matching object (float32): the
-    most a pose in this map could score on this frame, for either variant (``"soft"`` also counts
+    most a pose in this map could score on this frame, in either variant (``"soft"`` also counts
     other objects, but a patch's own best object is its largest term)."""
-    del variant  # both variants top out at every patch rendering its best match
     num_patches = match.cosines.shape[0]
     found = match.predicted >= 0
     safe = jnp.where(found, match.predicted, 0)
@@ -171,7 +170,7 @@ def judge(
     spread = particle_spread(state)
     active = jnp.maximum(jnp.sum(state.active), 1).astype(jnp.float32)
     ess_fraction = effective_sample_size(state) / active
-    attainable = best_semantic_score(match, observation.semantic_variant)
+    attainable = best_semantic_score(match)
     semantic_fraction = jnp.where(
         attainable > 0.0, best.semantic / jnp.where(attainable > 0.0, attainable, 1.0), 0.0
     )
