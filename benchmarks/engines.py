@@ -20,6 +20,7 @@ Agreement is the share of rays whose hit triangle equals the peer's.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import os
 import platform
@@ -35,7 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from raycast import build_room, random_poses, timed, world_rays  # noqa: E402
 
 import jaxloc  # noqa: E402
-from jaxloc.raycasting import embree, engines
+from jaxloc.raycasting import _native, embree, engines
 
 
 def peak_rss_mib() -> float:
@@ -60,16 +61,66 @@ def compiled_call(fn, args):
     return compile_s, call
 
 
+@contextlib.contextmanager
+def python_embree():
+    """Trace the Embree engine's calls to its Python implementation (embreex from a Python FFI
+    target, today's fallback) instead of the native one, in this block."""
+    native_target = embree._target
+    embree._target = embree.python_target
+    try:
+        yield
+    finally:
+        embree._target = native_target
+
+
+def with_packet_width(call, width):
+    """``call`` with the native engine's packets set to ``width`` rays (1: single rays only),
+    restored afterwards."""
+    engine = _native.load()
+
+    def run():
+        before = engine.packet_width
+        engine.set_packet_width(width)
+        try:
+            return call()
+        finally:
+            engine.set_packet_width(before)
+
+    return run
+
+
+def variants(names):
+    """(label, raycast keyword arguments, python implementation?, packet width or None) rows."""
+    rows = []
+    native = embree.implementation() == "native"
+    for engine in names:
+        rows.append((f"raycast, engine={engine}", {"engine": engine}, False, None))
+        if engine != "jax":
+            rows.append(
+                (f"raycast, engine={engine}, differentiable=False",
+                 {"engine": engine, "differentiable": False}, False, None)
+            )  # fmt: skip
+    if native and "embree" in names:
+        for kwargs, label in (({}, ""), ({"differentiable": False}, ", differentiable=False")):
+            kwargs = {"engine": "embree", **kwargs}
+            rows.append((f"raycast, embree native, single rays{label}", kwargs, False, 1))
+            rows.append((f"raycast, embree Python fallback{label}", kwargs, True, None))
+    return rows
+
+
 def run_grid(scene, peer, poses, camera, grid, names, repeats):
     """Every row of one ray set, timed round-robin (``repeats`` rounds, best of each row), so no
     row is favoured by running first or last."""
     origins, directions = world_rays(poses, camera, grid)
     rows = [{"what": "embreex EmbreeScene.run, 1 thread (peer)", "call": None}]
     rows[0]["call"] = lambda: peer.run(origins, directions)
-    for engine in names:
-        cast = functools.partial(jaxloc.raycast, engine=engine)
-        compile_s, call = compiled_call(cast, (scene, origins, directions))
-        rows.append({"what": f"raycast, engine={engine}", "compile": compile_s, "call": call})
+    for label, kwargs, python, width in variants(names):
+        cast = functools.partial(jaxloc.raycast, **kwargs)
+        with python_embree() if python else contextlib.nullcontext():
+            compile_s, call = compiled_call(cast, (scene, origins, directions))
+        if width is not None:
+            call = with_packet_width(call, width)
+        rows.append({"what": label, "compile": compile_s, "call": call})
     for engine in names:
         render = functools.partial(jaxloc.render_batch, engine=engine)
         compile_s, call = compiled_call(render, (scene, poses, camera, grid))
@@ -87,6 +138,15 @@ def run_grid(scene, peer, poses, camera, grid, names, repeats):
     for row in rows:
         row["ratio"] = rows[0]["wall"] / row["wall"]
     return origins.shape[0], rows
+
+
+def describe_embree() -> str:
+    """Which Embree implementation runs, with its threads (and packet width where native)."""
+    kind = embree.implementation()
+    if kind == "native":
+        engine = _native.load()
+        return f"native, {engine.threads} threads, packets of {engine.packet_width}"
+    return f"{kind}, {embree.embree_threads()} threads"
 
 
 def main(argv=None) -> None:
@@ -130,8 +190,7 @@ def main(argv=None) -> None:
     print(
         f"- jax {jax.__version__} on {device.platform} ({device.device_kind}); "
         f"{os.cpu_count()} CPUs visible, {platform.processor() or platform.machine()}; "
-        f"auto = {engines.resolve_engine('auto')}; Embree threads "
-        f"{embree._thread_pool()._max_workers}"
+        f"auto = {engines.resolve_engine('auto')}; Embree engine: {describe_embree()}"
     )
     print(f"- load average {load_start:.1f} at the start")
     print(

@@ -83,15 +83,33 @@ def test_engine_matches_float64_brute_force(engine, scene, rays, reference, seco
 
 
 @pytest.mark.parametrize("engine", ALL)
-def test_engine_agrees_with_the_jax_engine(engine, scene, rays, hits):
+def test_engine_agrees_with_the_jax_engine(engine, scene, rays, hits, reference):
     """Same triangle on (nearly) every ray, and then the same t and barycentric coordinates: they
-    come from the same JAX code whichever engine chose the triangle."""
+    come from the same JAX code whichever engine chose the triangle, or, for the native Embree
+    engine, from the same formulas in double precision, never less accurate than JAX's float32
+    (against the float64 brute force, on each ray, up to float32 rounding)."""
     ours = _np(_cast(engine)(scene, *rays))
     agree = ours.triangle_id == hits.triangle_id
     assert agree.mean() >= MIN_AGREEMENT
-    np.testing.assert_allclose(ours.t[agree & ours.hit], hits.t[agree & hits.hit], rtol=1e-6)
-    np.testing.assert_allclose(ours.barycentric[agree], hits.barycentric[agree], atol=1e-6)
     np.testing.assert_array_equal(ours.object_id[agree], hits.object_id[agree])
+    hit = agree & ours.hit
+    if not engines.recomputes_hits(engine):
+        np.testing.assert_allclose(ours.t[hit], hits.t[hit], rtol=1e-6)
+        np.testing.assert_allclose(ours.barycentric[agree], hits.barycentric[agree], atol=1e-6)
+        return
+    t_ref, triangle_ref, bary_ref = reference
+    hit &= triangle_ref == ours.triangle_id
+    assert hit.mean() > 0.4
+    # The reference sees the rays before float32 normalisation, so per ray either side may be
+    # closer by the rounding of the direction; over all rays, native is no worse.
+    error, jax_error = np.abs(ours.t[hit] - t_ref[hit]), np.abs(hits.t[hit] - t_ref[hit])
+    assert (error <= jax_error + 2e-7 * t_ref[hit]).mean() >= 0.99
+    assert error.mean() <= jax_error.mean() and error.max() <= 1.5 * jax_error.max() + 1e-6
+    np.testing.assert_allclose(ours.t[hit], hits.t[hit], rtol=1e-3)
+    bary_error = np.abs(ours.barycentric - bary_ref)[hit].max(-1)
+    jax_bary_error = np.abs(hits.barycentric - bary_ref)[hit].max(-1)
+    assert bary_error.mean() <= jax_bary_error.mean() + 1e-7
+    assert bary_error.max() <= jax_bary_error.max() + 1e-5
 
 
 @functools.cache
@@ -308,9 +326,10 @@ def test_padding_triangles_and_invalid_rays_never_reach_embree(scene, rays, monk
         return nearest(self, origins, directions, out)
 
     monkeypatch.setattr(embree._EmbreeMap, "nearest", counting)
+    monkeypatch.setattr(embree, "_target", embree.python_target)  # the Python implementation
     o = rays[0].copy()
     o[::3] = np.nan  # a third of the rays invalid
-    hits = _np(_cast("embree")(padded, o, rays[1]))
+    hits = _np(jax.jit(functools.partial(raycast, engine="embree"))(padded, o, rays[1]))
     valid = int(np.sum(np.isfinite(o).all(1)))
     assert traced == [(padded.num_triangles, valid)]
     assert padded.triangles.shape[0] == padded.num_triangles + 500

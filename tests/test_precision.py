@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 
+import _tiny_world as tiny
 import jax
 import jax.numpy as jnp
 import jaxlie
@@ -20,7 +21,6 @@ import numpy as np
 import pytest
 from jax.extend import core as jax_core
 
-import _tiny_world as tiny
 from jaxloc import render
 from jaxloc.camera import stride_grid
 from jaxloc.lsq import RobustLoss, solve_pose

@@ -6,6 +6,10 @@ like any other, see :mod:`jaxloc.raycasting._host_target`) and with :func:`jax.p
 elsewhere (on a GPU backend the rays make a round trip to the host). The rays are split over a
 thread pool as wide as the machine (``embreex``'s ``run`` releases the GIL). The Embree scene holds
 the map's real triangles only (not its all-zero padding), and only the valid rays are traced.
+
+With ``JAXLOC_NATIVE=1`` the same target is served by the native C++ handler instead
+(:mod:`jaxloc.raycasting._native`: Embree 4 called from native threads, packets for rays that
+share an origin), where it builds and passes its self-test; :func:`implementation` says which runs.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from jaxloc.raycasting import _native
 from jaxloc.raycasting._cache import StructureCache, fingerprint, real_triangles
 from jaxloc.raycasting._host_target import host_call, register_host_target
 
@@ -168,14 +173,83 @@ def _fill(inputs: list, outputs: list) -> None:
     _embree_host(*inputs, out=tuple(outputs), values=len(outputs) == 4)
 
 
-#: The XLA:CPU FFI target of the engine (registered at import; see _host_target).
+#: The XLA:CPU FFI target of the engine: the native handler (:mod:`jaxloc.raycasting._native`)
+#: where it builds and passes its self-test, else :func:`_fill` in Python; the same name and
+#: signature either way, so a program in the persistent compilation cache runs with both.
 TARGET = "jaxloc_embree_nearest"
-_HAS_TARGET = register_host_target(TARGET, _fill)
+#: The Python implementation under a name of its own (a process with the native engine can still
+#: run the Python one, e.g. to compare them).
+PYTHON_TARGET = "jaxloc_embree_nearest_python"
+#: The native handler under a name of its own (see :func:`native_target`).
+NATIVE_TARGET = "jaxloc_embree_nearest_native"
+_registered: dict[str, str] = {}  # target name -> "native" / "python" / "" (not registrable)
+
+
+def _register() -> str:
+    """Register :data:`TARGET` on first use in this process (at trace time, before any program
+    that calls it runs); which implementation serves it: "native", "python", or "" where this
+    jaxlib cannot register one (the engine then uses a pure_callback)."""
+    if TARGET not in _registered:
+        engine = _native.load()
+        if engine is not None:
+            jax.ffi.register_ffi_target(TARGET, engine.handler(), platform="cpu")
+            _registered[TARGET] = "native"
+        else:
+            _registered[TARGET] = "python" if register_host_target(TARGET, _fill) else ""
+    return _registered[TARGET]
+
+
+def implementation() -> str:
+    """Which implementation casts the Embree engine's rays in this process: ``"native"`` (the C++
+    FFI handler, native threads), ``"python"`` (embreex from a Python FFI target) or
+    ``"callback"`` (a ``jax.pure_callback``: a non-CPU backend, or no FFI registration)."""
+    if jax.default_backend() != "cpu":
+        return "callback"
+    return _register() or "callback"
+
+
+def python_target() -> str:
+    """:data:`PYTHON_TARGET`, registered; a process with the native engine uses it by swapping
+    :func:`_target` for this (tests and benchmarks of the Python implementation)."""
+    if PYTHON_TARGET not in _registered:
+        register_host_target(PYTHON_TARGET, _fill)
+        _registered[PYTHON_TARGET] = "python"
+    return PYTHON_TARGET
+
+
+def native_target() -> str:
+    """:data:`NATIVE_TARGET`: the native handler under a name of its own, whatever
+    ``$JAXLOC_NATIVE`` says (tests and benchmarks swap :func:`_target` for this).
+
+    Raises:
+        _native.NativeUnavailable: the native engine cannot be built or trusted here.
+    """
+    if NATIVE_TARGET not in _registered:
+        handler = _native.engine().handler()
+        jax.ffi.register_ffi_target(NATIVE_TARGET, handler, platform="cpu")
+        _registered[NATIVE_TARGET] = "native"
+    return NATIVE_TARGET
+
+
+def _target() -> str | None:
+    """The CPU target to call, or None for a pure_callback."""
+    if jax.default_backend() != "cpu":
+        return None
+    return TARGET if _register() else None
+
+
+def native_values() -> bool:
+    """Whether the target this process calls is served by the native handler, whose values are
+    :func:`jaxloc.raycast`'s recompute in double precision (see
+    :func:`jaxloc.raycasting.engines.recomputes_hits`). At trace time."""
+    target = _target()
+    return target is not None and _registered.get(target) == "native"
 
 
 def _call(args: tuple, out, values: bool):
-    if jax.default_backend() == "cpu" and _HAS_TARGET:
-        found = host_call(TARGET, out if values else (out,), *args)
+    target = _target()
+    if target is not None:
+        found = host_call(target, out if values else (out,), *args)
         return found if values else found[0]
     host = _embree_values_host if values else _embree_host
     return jax.pure_callback(host, out, *args, vmap_method="expand_dims")
@@ -203,5 +277,7 @@ def nearest_hit(
 
 
 def clear_cache() -> None:
-    """Drop every cached Embree scene (rebuilt on next use)."""
+    """Drop every cached Embree scene, native and Python (rebuilt on next use)."""
     _embree_maps.clear()
+    if "native" in _registered.values():
+        _native.engine().clear_cache()

@@ -78,6 +78,15 @@ def resolve_engine(engine: str) -> str:
     return engine
 
 
+def recomputes_hits(engine: str) -> bool:
+    """Whether ``engine``'s values (:func:`nearest_hit`) are the JAX recompute of
+    :func:`jaxloc.raycast` or better (the same formulas on the hit triangle, in double
+    precision): true of the native Embree engine, which :func:`jaxloc.raycast` then trusts on its
+    differentiable path too (the hit paid for once, derivatives from the JAX recompute). Static
+    (at trace time)."""
+    return engine == "embree" and embree.native_values()
+
+
 def nearest_triangle(
     engine: str, triangles: Array, origins: Array, directions: Array, valid: Array
 ) -> Array:

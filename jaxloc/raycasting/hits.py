@@ -19,7 +19,12 @@ import jax.numpy as jnp
 from jax import Array
 
 from jaxloc.raycasting.bvh import BVHScene
-from jaxloc.raycasting.engines import nearest_hit, nearest_triangle, resolve_engine
+from jaxloc.raycasting.engines import (
+    nearest_hit,
+    nearest_triangle,
+    recomputes_hits,
+    resolve_engine,
+)
 from jaxloc.raycasting.traversal import DEFAULT_CHUNK, nearest_leaf_triangles
 from jaxloc.raycasting.triangle import DET_EPS, moller_trumbore
 
@@ -85,6 +90,38 @@ def _differentiable_hit(o, d, tri, hit):
     u, v = jnp.clip(u, 0.0, 1.0), jnp.clip(v, 0.0, 1.0)
     bary = jnp.where(hit[..., None], jnp.stack([1.0 - u - v, u, v], -1), 0.0)
     return t, bary
+
+
+def _recompute(o: Array, d: Array, corners: Array, hit: Array) -> tuple[Array, Array]:
+    """:func:`_differentiable_hit` on (R, 3) rays and (R, 9) corners."""
+    return _differentiable_hit(
+        [o[:, a] for a in range(3)],
+        [d[:, a] for a in range(3)],
+        [corners[:, k] for k in range(9)],
+        hit,
+    )
+
+
+@jax.custom_jvp
+def _hit_with_gradients(o, d, corners, hit, t, bary):
+    """``(t, bary)`` as an engine computed them at its hit triangles, differentiated as the JAX
+    recompute (:func:`_differentiable_hit`) at the same triangles: the forward pass pays for the
+    hit once, and derivatives (to origins, directions and corners) equal the recompute's.
+
+    Args: o, d (R, 3) rays (unit directions), corners (R, 9) the hit triangles' vertices, hit (R,)
+    bool, t (R,) and bary (R, 3) the engine's values (inf and 0 on a miss).
+    """
+    return t, bary
+
+
+@_hit_with_gradients.defjvp
+def _hit_with_gradients_jvp(primals, tangents):
+    o, d, corners, hit, t, bary = primals
+    do, dd, dcorners = tangents[:3]
+    _, (dt, dbary) = jax.jvp(
+        lambda o, d, c: _recompute(o, d, c, hit), (o, d, corners), (do, dd, dcorners)
+    )
+    return (t, bary), (dt, dbary)
 
 
 def hit_triangles(
@@ -179,8 +216,12 @@ def raycast(
     ok &= jnp.all(jnp.isfinite(o), axis=1)
     o_search = jax.lax.stop_gradient(jnp.where(ok[:, None], o, 0.0))
     d_search = jax.lax.stop_gradient(d)
-    if not differentiable and engine != "jax":
+    if engine != "jax" and (not differentiable or recomputes_hits(engine)):
         triangle, t, bary = _engine_values(scene, o_search, d_search, ok, engine)
+        if differentiable:  # the engine's recompute, with the derivatives of JAX's
+            rows = scene.triangles.reshape(-1, 9)
+            corners = rows.at[jnp.maximum(triangle, 0)].get(mode="promise_in_bounds")  # (R, 9)
+            t, bary = _hit_with_gradients(o, d, corners, triangle >= 0, t, bary)
     else:
         triangle = hit_triangles(scene, o_search, d_search, ok, engine, packet_size, chunk_size)
         # Ids are in [-1, T), so the clamped gather is always in bounds.
@@ -188,12 +229,7 @@ def raycast(
         corners = rows.at[jnp.maximum(triangle, 0)].get(mode="promise_in_bounds")  # (R, 9)
         if not differentiable:
             o, d = o_search, d_search
-        t, bary = _differentiable_hit(
-            [o[:, a] for a in range(3)],
-            [d[:, a] for a in range(3)],
-            [corners[:, k] for k in range(9)],
-            triangle >= 0,
-        )
+        t, bary = _recompute(o, d, corners, triangle >= 0)
     hit = triangle >= 0
     object_id = jnp.where(hit, scene.triangle_object[jnp.maximum(triangle, 0)], -1)
     lead = shape[:-1]
