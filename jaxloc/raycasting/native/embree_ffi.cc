@@ -9,7 +9,8 @@
 //             origins, directions (*L, R, 3) f32 (finite; unit directions)
 //             valid (*L, R) bool          the other rays are not traced and miss
 //   results   faces (*L, R) int32 map index of the nearest triangle, -1 on a miss
-//             [t, u, v (*L, R) f32]       Embree's distance and barycentric weights (values-only)
+//             [t, u, v (*L, R) f32]       distance and barycentric weights, recomputed on the hit
+//                                         triangle in double precision (values-only)
 //             status (*L, 1) int32        0 done, 1 failed (the results are then not to be used)
 //
 // with size-1 leading axes where an operand is not batched (jax's "expand_dims" vmap method).
