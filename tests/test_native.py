@@ -1,5 +1,6 @@
-"""The native Embree engine (jaxloc/raycasting/native/, opt-in with JAXLOC_NATIVE=1): its build,
-self-test and fallback, and its hits against a float64 brute force and the Python engine."""
+"""The native Embree engine (jaxloc/raycasting/native/, the default where it builds): its build,
+self-test and fallback, its hits against a float64 brute force and the Python engine, and its
+programs in the persistent compilation cache (run by either implementation)."""
 
 from __future__ import annotations
 
@@ -28,7 +29,7 @@ def engine():
 
 def test_mode_reads_the_environment(monkeypatch):
     monkeypatch.delenv(_native.ENV_MODE, raising=False)
-    assert _native.mode() == "off"
+    assert _native.mode() == "auto"
     for value, expected in (("1", "auto"), ("auto", "auto"), ("0", "off"), ("require", "require")):
         monkeypatch.setenv(_native.ENV_MODE, value)
         assert _native.mode() == expected
@@ -177,3 +178,57 @@ def test_handler_matches_the_python_engine_in_raycast(engine, monkeypatch):
     # (up to raycast's float32 re-normalisation of the directions, amplified on grazing rays)
     np.testing.assert_allclose(native[0].t.ravel()[exact], ref_t[exact], rtol=1e-5)
     np.testing.assert_allclose(native[2], python[2], rtol=1e-5, atol=1e-6)
+
+
+#: A process that enables the compilation cache, casts rays with the Embree engine and reports the
+#: implementation, the persistent-cache hits and the faces.
+CACHED_CAST = """
+import json, sys
+import jax, jax.numpy as jnp, numpy as np
+import jaxloc
+from jaxloc.raycasting import embree
+from jaxloc.synthetic.indoor import make_room, scene_graph
+
+jaxloc.enable_compilation_cache(sys.argv[1])
+hits = []
+jax.monitoring.register_event_listener(
+    lambda event, **kw: hits.append(event) if event.endswith("cache_hits") else None
+)
+scene = scene_graph(make_room(3))
+rng = np.random.default_rng(0)
+lo, hi = np.asarray(scene.bounds)
+origins = jnp.asarray(np.tile((lo + hi) / 2, (64, 1)), jnp.float32)
+directions = rng.normal(size=(64, 3))
+directions[::4] = 0.0  # no direction: these miss
+directions = jnp.asarray(directions, jnp.float32)
+cast = jax.jit(lambda s, o, d: jaxloc.raycast(s, o, d, engine="embree", differentiable=False))
+faces = np.asarray(cast(scene, origins, directions).triangle_id)
+print(json.dumps({"impl": embree.implementation(), "hits": len(hits), "faces": faces.tolist()}))
+"""
+
+
+def test_handler_programs_go_to_the_persistent_cache_and_run_with_either(engine, tmp_path):
+    """A program that calls the native handler is written to the persistent cache and loaded by
+    the next process, and a process on the Python implementation (JAXLOC_NATIVE=0) loads and runs
+    the same entry: one target name and signature for both."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    def run(mode):
+        env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION", "JAXLOC_"))}
+        env.update({_native.ENV_MODE: mode, "JAX_PLATFORMS": "cpu"})
+        done = subprocess.run(
+            [sys.executable, "-c", CACHED_CAST, str(tmp_path / "xla")],
+            env=env, capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr[-3000:]
+        return json.loads(done.stdout.strip().splitlines()[-1])
+
+    first, second, python = run("require"), run("require"), run("0")
+    assert (first["impl"], second["impl"], python["impl"]) == ("native", "native", "python")
+    assert first["hits"] == 0 and second["hits"] >= 1 and python["hits"] >= 1
+    assert first["faces"] == second["faces"] == python["faces"]
+    faces = np.asarray(first["faces"])  # inside a closed room: every ray with a direction hits
+    assert np.all(faces[::4] == -1) and np.all(np.delete(faces, np.s_[::4]) >= 0)

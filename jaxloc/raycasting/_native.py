@@ -14,10 +14,10 @@ Embree itself is the library the embreex wheel ships (``embreex.libs/libembree4*
 by path at run time; nothing is downloaded. After loading, the engine casts a small fixed scene
 (packets and single rays, hits and misses) and must match a float64 reference, or it is not used.
 
-``$JAXLOC_NATIVE``: ``0`` (default, for now) keeps the Python engine; ``1`` (or ``auto``) uses
-the native engine where it builds and passes its self-test, else warns once and keeps the Python
-engine; ``require`` raises instead of falling back. Opt-in until it is faster than the Python
-engine, which on 2 cores it is not yet (``benchmarks/engines.py``). ``$JAXLOC_NATIVE_THREADS``:
+``$JAXLOC_NATIVE``: unset, ``1`` or ``auto`` (the default) use the native engine where it builds
+and passes its self-test, else warn once and keep the Python engine; ``0`` keeps the Python engine;
+``require`` raises instead of falling back (CI runs so, that a broken build fails it).
+``$JAXLOC_NATIVE_THREADS``:
 threads that cast (the calling thread included; default: the CPUs this process may run on).
 """
 
@@ -52,15 +52,15 @@ class NativeUnavailable(RuntimeError):
 
 
 def mode() -> str:
-    """``"off"`` (the default), ``"auto"`` or ``"require"``, from :data:`ENV_MODE`.
+    """``"auto"`` (the default), ``"off"`` or ``"require"``, from :data:`ENV_MODE`.
 
     Raises:
         ValueError: any other value.
     """
-    value = os.environ.get(ENV_MODE, "0").strip().lower()
-    if value in ("auto", "1"):
+    value = os.environ.get(ENV_MODE, "auto").strip().lower()
+    if value in ("", "auto", "1"):
         return "auto"
-    if value in ("", "0", "off", "false", "no"):
+    if value in ("0", "off", "false", "no"):
         return "off"
     if value == "require":
         return "require"
@@ -327,7 +327,7 @@ def load() -> NativeEngine | None:
             raise NativeUnavailable(f"{ENV_MODE}=require, but: {error}") from error
         warnings.warn(
             f"jaxloc: the native Embree engine is unavailable ({error}); using the Python "
-            f"Embree engine. Unset {ENV_MODE} to silence this.",
+            f"Embree engine. Set {ENV_MODE}=0 to silence this.",
             RuntimeWarning,
             stacklevel=2,
         )

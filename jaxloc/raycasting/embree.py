@@ -7,9 +7,10 @@ elsewhere (on a GPU backend the rays make a round trip to the host). The rays ar
 thread pool as wide as the machine (``embreex``'s ``run`` releases the GIL). The Embree scene holds
 the map's real triangles only (not its all-zero padding), and only the valid rays are traced.
 
-With ``JAXLOC_NATIVE=1`` the same target is served by the native C++ handler instead
+By default the same target is served by the native C++ handler instead
 (:mod:`jaxloc.raycasting._native`: Embree 4 called from native threads, packets for rays that
-share an origin), where it builds and passes its self-test; :func:`implementation` says which runs.
+share an origin), where it builds and passes its self-test (``JAXLOC_NATIVE=0`` keeps the Python
+one); :func:`implementation` says which runs.
 """
 
 from __future__ import annotations
