@@ -140,15 +140,6 @@ def run_grid(scene, peer, poses, camera, grid, names, repeats):
     return origins.shape[0], rows
 
 
-def describe_embree() -> str:
-    """Which Embree implementation runs, with its threads (and packet width where native)."""
-    kind = embree.implementation()
-    if kind == "native":
-        engine = _native.load()
-        return f"native, {engine.threads} threads, packets of {engine.packet_width}"
-    return f"{kind}, {embree.embree_threads()} threads"
-
-
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--poses", type=int, default=2500)
@@ -190,7 +181,7 @@ def main(argv=None) -> None:
     print(
         f"- jax {jax.__version__} on {device.platform} ({device.device_kind}); "
         f"{os.cpu_count()} CPUs visible, {platform.processor() or platform.machine()}; "
-        f"auto = {engines.resolve_engine('auto')}; Embree engine: {describe_embree()}"
+        f"auto = {engines.resolve_engine('auto')}; Embree engine: {embree.describe()}"
     )
     print(f"- load average {load_start:.1f} at the start")
     print(

@@ -173,6 +173,7 @@ def run_case(args: argparse.Namespace) -> dict:
     """Compile and time one step configuration (runs in the child process)."""
     import jax
     import jax.numpy as jnp
+    import numpy as np
 
     from jaxloc.camera import patch_grid, stride_grid
     from jaxloc.sg2loc.filter import Region, StepConfig, frames_on_grid, step
@@ -219,6 +220,7 @@ def run_case(args: argparse.Namespace) -> dict:
         walls.append(time.perf_counter() - wall)
         cpus.append(time.process_time() - cpu)
         counts.append(int(info.num_particles))
+    peer_wall = peer_seconds(scene, np.asarray(state.poses), seq.camera, grid)
     return {
         "case": args.child,
         "rays_per_particle": int(grid.uv.shape[0]),
@@ -233,7 +235,43 @@ def run_case(args: argparse.Namespace) -> dict:
         "peak_rss_mib": peak_rss_mib(),
         "device_peak_mib": device_peak_mib(),
         "device": str(jax.devices()[0]),
+        "peer_wall": peer_wall,
+        "embree": describe_embree(args.engine),
     }
+
+
+def peer_seconds(scene, poses, camera, grid) -> float:
+    """Wall seconds (best of 2) single-threaded embreex (``EmbreeScene.run``) takes to cast every
+    slot's rays of ``grid`` from ``poses`` (N, 4): what a step would cost in Embree alone if it
+    rendered the whole capacity (the issue's yardstick)."""
+    import jax
+    import numpy as np
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    from jaxloc.geometry import rotation_world_cam
+
+    peer = rtcore_scene.EmbreeScene()
+    triangles = np.asarray(scene.triangles)[: scene.num_triangles]
+    TriangleMesh(peer, np.ascontiguousarray(triangles, np.float32))
+    d_cam = np.asarray(camera.directions(grid.uv))
+    rotations = np.asarray(jax.vmap(rotation_world_cam)(poses[:, 3]))
+    directions = np.einsum("nij,rj->nri", rotations, d_cam).reshape(-1, 3).astype(np.float32)
+    origins = np.repeat(poses[:, :3], d_cam.shape[0], axis=0).astype(np.float32)
+    peer.run(origins[:1], directions[:1])  # builds its BVH
+    best = np.inf
+    for _ in range(2):
+        start = time.perf_counter()
+        peer.run(origins, directions)
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def describe_embree(engine: str) -> str:
+    """Which Embree implementation the step's engine uses (or the engine's name)."""
+    from jaxloc.raycasting import embree, resolve_engine
+
+    return f"embree {embree.describe()}" if resolve_engine(engine) == "embree" else engine
 
 
 # ----------------------------------------------------------------------------- report
@@ -271,11 +309,13 @@ def report(args, data_info: dict, results: list[dict]) -> str:
         "s/frame CPU",
         "peak RSS MiB",
         "device peak MiB",
+        "peer s (1-thread embreex, every slot's rays)",
+        "step / peer (wall)",
     ]
     if reduced:
         header.append("ESTIMATE full size s/frame wall (linear scaling)")
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    total = {"compile_wall": 0.0, "compile_cpu": 0.0, "wall": 0.0, "cpu": 0.0, "estimate": 0.0}
+    total = dict.fromkeys(("compile_wall", "compile_cpu", "wall", "cpu", "estimate", "peer"), 0.0)
     strides = [int(s) for s in args.strides.split(",")]
     for result in results:
         frame_wall, frame_cpu = mean(result["frame_wall"]), mean(result["frame_cpu"])
@@ -293,6 +333,8 @@ def report(args, data_info: dict, results: list[dict]) -> str:
             f"{frame_cpu:.3f}",
             f"{result['peak_rss_mib']:.0f}",
             "n/a" if device_peak is None else f"{device_peak:.0f}",
+            f"{result['peer_wall']:.3f}",
+            f"{frame_wall / result['peer_wall']:.2f}",
         ]
         if reduced:
             row.append(f"{estimate:.1f}")
@@ -303,6 +345,7 @@ def report(args, data_info: dict, results: list[dict]) -> str:
             total["wall"] += frame_wall
             total["cpu"] += frame_cpu
             total["estimate"] += estimate
+            total["peer"] += result["peer_wall"]
     stride_cases = [r for r in results if r["case"].startswith("stride")]
     if len(stride_cases) > 1:
         row = [
@@ -315,6 +358,8 @@ def report(args, data_info: dict, results: list[dict]) -> str:
             f"{total['cpu']:.3f}",
             f"{max(r['peak_rss_mib'] for r in stride_cases):.0f}",
             "-",
+            f"{total['peer']:.3f}",
+            f"{total['wall'] / total['peer']:.2f}",
         ]
         if reduced:
             row.append(f"{total['estimate']:.1f}")
@@ -322,8 +367,8 @@ def report(args, data_info: dict, results: list[dict]) -> str:
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     notes = [
         "",
-        f"engine {args.engine}; particles per render chunk: "
-        + ", ".join(f"{r['case']} {r['chunk']}" for r in results),
+        f"engine {args.engine} ({results[0]['embree'] if results else '?'}); particles per "
+        "render chunk: " + ", ".join(f"{r['case']} {r['chunk']}" for r in results),
         f"device: {results[0]['device'] if results else '?'}; {os.cpu_count()} CPUs; "
         f"load average {load}; python {platform.python_version()}",
         f"episode: seed {args.seed}, {args.frames} frames at {args.width}x{args.height}, room "

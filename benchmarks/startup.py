@@ -13,8 +13,11 @@ against an empty compilation cache of their own) beside ``python -c "import jax"
 * ``jaxloc demo`` (the paper's scale unless ``--demo-args`` says else): first and second run.
 
 Each pair runs with ``JAXLOC_CACHE_DIR`` set to a fresh folder; ``--no-cache`` times the
-second runs with the cache off instead (what a run costs without it). Results as a Markdown table
-on stdout (``--out FILE`` writes it too, with the machine's load before and after).
+second runs with the cache off instead (what a run costs without it). The pairs run through
+``benchmarks/startup_probe.py``, which says where each run's time went (imports, tracing,
+lowering, XLA compilation, cache loads, the rest: reading, computing, writing). Results as
+Markdown tables on stdout (``--out FILE`` writes them too, with the machine's load before and
+after).
 
     python benchmarks/startup.py                     # everything (a few minutes; the demo ~2 min)
     python benchmarks/startup.py --skip-demo --repeats 5
@@ -23,6 +26,7 @@ on stdout (``--out FILE`` writes it too, with the machine's load before and afte
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import statistics
@@ -35,6 +39,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 SHARED = ROOT.parent / "shared" / "data"
 JAXLOC = [sys.executable, "-m", "jaxloc.cli"]
+PROBE = str(Path(__file__).resolve().parent / "startup_probe.py")
+#: The columns of the breakdown table (startup_probe.py's keys).
+PARTS = ("import", "trace", "lower", "compile", "cache_load", "rest")
 
 
 def timed(argv: list[str], env: dict | None = None) -> float:
@@ -85,15 +92,21 @@ def camera_inputs(work: Path) -> list[str]:
             "--strides", "10", "5", "--no-progress"]  # fmt: skip
 
 
-def pair(name: str, argv: list[str], work: Path, cache: bool) -> tuple[float, float]:
-    """(first, second) run of ``argv`` against a fresh compilation cache (or none)."""
+def pair(name: str, command: list[str], work: Path, cache: bool) -> tuple[float, float, list]:
+    """(first, second, breakdowns) of ``jaxloc COMMAND`` against a fresh compilation cache (or
+    none): wall seconds from outside, and each run's startup_probe.py report."""
     env = dict(os.environ)
     folder = work / f"cache_{name}"
     shutil.rmtree(folder, ignore_errors=True)
     env["JAXLOC_CACHE_DIR"] = str(folder)
     if not cache:
         env["JAXLOC_NO_CACHE"] = "1"
-    return timed(argv, env), timed(argv, env)
+    walls, reports = [], []
+    for run in ("first", "second"):
+        report = work / f"{name}_{run}.json"
+        walls.append(timed([sys.executable, PROBE, str(report), "--", *command], env))
+        reports.append(json.loads(report.read_text()))
+    return walls[0], walls[1], reports
 
 
 def loadavg() -> str:
@@ -130,12 +143,12 @@ def main() -> None:
             )
         )
         cache = not args.no_cache
-        lidar = [*JAXLOC, "localize-lidar", *lidar_inputs(work)]
+        lidar = ["localize-lidar", *lidar_inputs(work)]
         rows.append(("jaxloc localize-lidar MAP SCAN", *pair("lidar", lidar, work, cache)))
-        camera = [*JAXLOC, "localize-camera", *camera_inputs(work)]
+        camera = ["localize-camera", *camera_inputs(work)]
         rows.append(("jaxloc localize-camera MAP.npz SEQ", *pair("camera", camera, work, cache)))
         if not args.skip_demo:
-            demo = [*JAXLOC, "demo", "--out", str(work / "demo.png"), *args.demo_args]
+            demo = ["demo", "--out", str(work / "demo.png"), *args.demo_args]
             rows.append(
                 ("jaxloc demo " + " ".join(args.demo_args), *pair("demo", demo, work, cache))
             )
@@ -147,13 +160,25 @@ def main() -> None:
         "| what | first run (s) | second run (s) | / import jax (first, second) |",
         "|---|---|---|---|",
     ]
-    for name, first, second in rows:
+    breakdown = [
+        "",
+        "Where the time went (startup_probe.py, wall seconds inside the process; `rest`: reading, "
+        "computing, writing; programs: compilations requested / answered by the cache):",
+        "",
+        "| command | run | " + " | ".join(PARTS) + " | programs |",
+        "|---|---|" + "---|" * (len(PARTS) + 1),
+    ]
+    for name, first, second, *reports in rows:
         if second is None:
             lines.append(f"| `{name}` | {first:.2f} | | {first / jax_s:.2f}x |")
         else:
             ratio = f"{first / jax_s:.1f}x, {second / jax_s:.1f}x"
             lines.append(f"| `{name}` | {first:.2f} | {second:.2f} | {ratio} |")
-    text = "\n".join(lines)
+            for run, report in zip(("first", "second"), reports[0], strict=True):
+                parts = " | ".join(f"{report[part]:.2f}" for part in PARTS)
+                programs = f"{report['programs']} / {report['cache_hits']}"
+                breakdown.append(f"| `{name}` | {run} | {parts} | {programs} |")
+    text = "\n".join(lines + breakdown)
     print(text)
     if args.out is not None:
         args.out.write_text(text + "\n")

@@ -111,7 +111,9 @@ def particle_checks(mesh, engine: str = "auto", particle_chunk: int | None = Non
 
 
 def engine_call_checks(mesh) -> dict:
-    """Rays per Embree call in a sharded step: each device calls the engine on its own shard."""
+    """Rays per Embree call in a sharded step: each device calls the engine on its own shard.
+    Counted in the Python implementation (the native handler has the same target signature, so
+    XLA partitions its calls the same way)."""
     scene = tiny.scene()
     config = dataclasses.replace(tiny.step_config(scene), engine="embree")
     state = tiny.initial_state(scene)
@@ -123,6 +125,8 @@ def engine_call_checks(mesh) -> dict:
         return host(key, triangles, origins, directions, valid, out, values)
 
     embree._embree_host = counting
+    target = embree._target
+    embree._target = embree.python_target
     try:
         frame = jax.tree.map(lambda a: a[0], tiny.frames(NUM_FRAMES))
         sharded.sharded_step(
@@ -131,6 +135,7 @@ def engine_call_checks(mesh) -> dict:
         jax.effects_barrier()
     finally:
         embree._embree_host = host
+        embree._target = target
     return {"embree_rays_per_call": sorted(calls), "rays_per_particle": config.grid.uv.shape[0]}
 
 

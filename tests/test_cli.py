@@ -301,6 +301,9 @@ def test_bench_raycast_tiny(capsys):
     code, out, err = run(argv, capsys)
     assert code == 0, err
     assert "2 poses x 32 rays" in out  # 8 x 4 pixels at stride 4
+    from jaxloc.cli._bench import describe_engine
+
+    assert f"engine: {describe_engine()}" in out  # e.g. "embree (native, 2 threads, ...)"
     assert numbers_after(r"(\d+\.\d+) M rays/s", out) > 0
 
 

@@ -56,6 +56,14 @@ def check_bench_filter(args: argparse.Namespace) -> None:
         )
 
 
+def describe_engine() -> str:
+    """The engine ``"auto"`` picks here, in words (for Embree: which implementation, threads)."""
+    from jaxloc.raycasting import embree, resolve_engine
+
+    engine = resolve_engine("auto")
+    return f"embree ({embree.describe()})" if engine == "embree" else engine
+
+
 def run_bench_raycast(args: argparse.Namespace) -> int:
     import jax
 
@@ -92,6 +100,7 @@ def run_bench_raycast(args: argparse.Namespace) -> int:
         f"{args.poses} poses x {grid.uv.shape[0]} rays ({args.width}x{args.height}, "
         f"stride {args.stride}) = {rays} rays"
     )
+    print(f"  engine: {describe_engine()}")
     print(f"  compile {compile_s:.2f} s; best of {args.repeats}: {wall * 1e3:.1f} ms")
     per_cpu_s = rays / max(cpu, 1e-9) / 1e6
     print(f"  {rays / wall / 1e6:.3f} M rays/s (wall), {per_cpu_s:.3f} M rays per CPU-second")

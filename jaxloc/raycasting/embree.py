@@ -209,6 +209,16 @@ def implementation() -> str:
     return _register() or "callback"
 
 
+def describe() -> str:
+    """:func:`implementation` in words, with its threads (and packet width where native), e.g.
+    ``"native, 2 threads, packets of 16"``."""
+    kind = implementation()
+    if kind == "native":
+        engine = _native.load()
+        return f"native, {engine.threads} threads, packets of {engine.packet_width}"
+    return f"{kind}, {embree_threads()} threads" if kind == "python" else kind
+
+
 def python_target() -> str:
     """:data:`PYTHON_TARGET`, registered; a process with the native engine uses it by swapping
     :func:`_target` for this (tests and benchmarks of the Python implementation)."""
