@@ -129,6 +129,46 @@ def test_cast_matches_a_float64_brute_force_on_adversarial_rays(engine):
     assert np.all(np.isinf(t[faces < 0])) and np.all(u[faces < 0] == 0)
 
 
+def test_packets_equal_single_rays_on_camera_rays(engine):
+    """A camera's rays (one origin, a 64 x 48 grid at 60 degrees) as packets of the CPU's width
+    and one by one, in a furnished room: the same faces (up to ties on shared edges) and t, u, v;
+    the packet path is really taken for such rays, and not for scattered ones."""
+    from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
+
+    scene = scene_graph(make_room(3, RoomConfig(num_objects=(8, 8))))
+    tris = np.asarray(scene.triangles)
+    lo, hi = np.asarray(scene.bounds)
+    camera = jaxloc.Camera.from_fov(64, 48, 60.0)
+    d_cam = np.asarray(camera.directions(jaxloc.stride_grid(camera, 1).uv))
+    yaw = np.linspace(0, 2 * np.pi, 6, endpoint=False)
+    rot = np.stack([[np.cos(yaw), -np.sin(yaw), 0 * yaw], [np.sin(yaw), np.cos(yaw), 0 * yaw],
+                    [0 * yaw, 0 * yaw, 1 + 0 * yaw]]).transpose(2, 0, 1)  # fmt: skip
+    turn = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # camera z forward -> world x
+    directions = np.einsum("nij,jk,rk->nri", rot, turn, d_cam).reshape(-1, 3).astype(np.float32)
+    origins = np.tile(((lo + hi) / 2).astype(np.float32), (len(directions), 1))
+    if engine.packet_width == 1:
+        pytest.skip("this CPU has no packet kernels")
+    before = engine.packets_traced()
+    packed = engine.cast(tris, origins, directions)
+    assert engine.packets_traced() - before >= len(directions) // engine.packet_width // 2
+    width = engine.packet_width
+    try:
+        engine.set_packet_width(1)
+        single = engine.cast(tris, origins, directions)
+    finally:
+        engine.set_packet_width(width)
+    assert np.mean(packed[0] >= 0) > 0.99  # a closed room
+    same = packed[0] == single[0]
+    assert same.mean() >= 0.999
+    for a, b in zip(packed[1:], single[1:], strict=True):
+        np.testing.assert_array_equal(a[same], b[same])  # one formula on the same triangle
+    rng = np.random.default_rng(0)
+    scattered = origins + rng.uniform(-0.5, 0.5, origins.shape).astype(np.float32)
+    before = engine.packets_traced()
+    engine.cast(tris, scattered, directions)
+    assert engine.packets_traced() == before
+
+
 def test_handler_matches_the_python_engine_in_raycast(engine, monkeypatch):
     """jaxloc.raycast through the native handler and through the Python one: same faces on
     >= 99.9 % of rays, t within float32 rounding, vmapped calls equal to a loop, gradients equal

@@ -184,6 +184,7 @@ class NativeEngine:
             pointer(ctypes.c_int32), pointer(ctypes.c_float), pointer(ctypes.c_float),
             pointer(ctypes.c_float), ctypes.c_char_p, ctypes.c_int,
         ]  # fmt: skip
+        lib.jaxloc_native_packets_traced.restype = ctypes.c_int64
         self.packet_width = lib.jaxloc_native_packet_width()
         self.threads = lib.jaxloc_native_threads()
 
@@ -217,6 +218,10 @@ class NativeEngine:
             raise NativeUnavailable(f"the native cast failed: {error.value.decode()}")
         return out
 
+    def packets_traced(self) -> int:
+        """Packets the engine has traced in this process (rays cast together; a test knob)."""
+        return self.lib.jaxloc_native_packets_traced()
+
     def clear_cache(self) -> None:
         """Drop the engine's cached Embree scenes."""
         self.lib.jaxloc_native_clear_cache()
@@ -245,7 +250,7 @@ def self_test_rays() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     grid = (np.arange(8) + 0.5) / 8 * 2.0 - 0.4  # x, y in [-0.275, 1.475]: hits and misses
     x, y = np.meshgrid(grid, grid + 0.013)
     target = np.stack([x.ravel(), y.ravel(), np.full(x.size, 2.5)], 1)
-    origin = np.array([0.3, 0.4, 0.0])
+    origin = np.array([0.3, 0.4, -3.0])  # far enough for the grid's rows to trace as packets
     camera_d = target - origin
     scattered = origin + 0.01 * np.arange(camera_d.shape[0])[:, None] * np.array([1, -1, 0])
     origins = np.concatenate([np.repeat(origin[None], len(target), 0), scattered])
@@ -281,9 +286,13 @@ def reference_hits(triangles, origins, directions, valid):
 
 def self_test(engine: NativeEngine) -> None:
     """Cast :func:`self_test_rays` with the engine; raise :class:`NativeUnavailable` unless
-    every face matches the float64 reference and t, u, v agree within 1e-5."""
+    every face matches the float64 reference and t, u, v agree within 1e-5 (the camera rays as
+    packets where the CPU has them)."""
     rays = self_test_rays()
+    packets = engine.packets_traced()
     faces, t, u, v = engine.cast(*rays)
+    if engine.packet_width > 1 and engine.packets_traced() == packets:
+        raise NativeUnavailable("the self-test's camera rays were not traced as packets")
     ref_faces, ref_t, ref_u, ref_v = reference_hits(*rays)
     hit = ref_faces >= 0
     if not (np.array_equal(faces, ref_faces) and 0.2 < hit.mean() < 0.9):
