@@ -220,6 +220,7 @@ def run_case(args: argparse.Namespace) -> dict:
         walls.append(time.perf_counter() - wall)
         cpus.append(time.process_time() - cpu)
         counts.append(int(info.num_particles))
+    peak_rss = peak_rss_mib()  # the step's own peak, before the peer's arrays of rays
     peer_wall = peer_seconds(scene, np.asarray(state.poses), seq.camera, grid)
     return {
         "case": args.child,
@@ -232,7 +233,7 @@ def run_case(args: argparse.Namespace) -> dict:
         "frame_cpu": cpus,
         "num_particles": counts,
         "rss_before_mib": rss_before,
-        "peak_rss_mib": peak_rss_mib(),
+        "peak_rss_mib": peak_rss,
         "device_peak_mib": device_peak_mib(),
         "device": str(jax.devices()[0]),
         "peer_wall": peer_wall,
