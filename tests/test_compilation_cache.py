@@ -136,3 +136,25 @@ def test_help_imports_no_jax():
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]
+
+
+def test_the_command_line_quiets_the_xla_log_before_its_checks_import_jax():
+    """The demo's option checks import JAX (SSIM's window); the log level must be set before
+    that, or every cached program logs the spurious lines (seen in `jaxloc demo` before)."""
+    code = (
+        "import json, os, sys\nimport jaxloc.cli as cli\nseen = {}\n"
+        "def record(name):\n"
+        "    def run(args):\n"
+        "        seen[name] = os.environ.get('TF_CPP_MIN_LOG_LEVEL')\n        return 0\n"
+        "    return run\n"
+        "cli._COMMANDS['demo'] = record('demo')\n"
+        "cli.main(['demo', '--width', '160', '--height', '120'])\n"
+        "print(json.dumps({'demo': seen['demo'], 'jax': 'jax' in sys.modules}))"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "TF_CPP_MIN_LOG_LEVEL"}
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report == {"demo": "3", "jax": True}

@@ -60,6 +60,7 @@ from jaxloc.cli._options import (
     seed,
     stride_list,
 )
+from jaxloc.compilation_cache import quiet_xla_log
 
 __all__ = ["InputError", "build_parser", "check_args", "main"]
 
@@ -365,9 +366,8 @@ def _enable_cache(args: argparse.Namespace) -> None:
     is a note, not an error: the command then compiles as without a cache)."""
     if args.no_cache or args.command == "cache":
         return
-    from jaxloc.compilation_cache import enable_compilation_cache, quiet_xla_log
+    from jaxloc.compilation_cache import enable_compilation_cache
 
-    quiet_xla_log()
     try:
         enable_compilation_cache()
     except OSError as error:
@@ -427,6 +427,10 @@ def main(argv: list[str] | None = None) -> int:
     name = _command_name(args)
 
     def checked_run() -> int:
+        if not args.no_cache and args.command != "cache":
+            # before any check imports JAX (the demo's strides need SSIM's window, in a module
+            # that imports JAX): once JAX is in, its C++ log level is fixed
+            quiet_xla_log()
         check_args(args)
         _enable_cache(args)
         return _COMMANDS[name](args)
