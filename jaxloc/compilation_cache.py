@@ -159,6 +159,26 @@ def cache_enabled() -> bool:
     return "folder" in _PROGRAMS and not cache_disabled()
 
 
+def cache_entry(kind: str, suffix: str, *parts) -> Path | None:
+    """The path (in ``<cache folder>/<kind>/``) of a file that keeps a value computed from
+    ``parts`` (numpy arrays, keyed by dtype, shape and bytes; anything else by its ``repr``), or
+    None when the cache is off. The key also covers jaxloc's source files, so a value computed
+    by other code is never served. The caller writes the file atomically and validates what it
+    reads back (a damaged file must cost only a recomputation)."""
+    if not cache_enabled():
+        return None
+    import numpy as np
+
+    digest = hashlib.sha256(_source_digest().encode())
+    for part in parts:
+        if isinstance(part, np.ndarray):
+            digest.update(f"{part.dtype.str}{part.shape}".encode())
+            digest.update(np.ascontiguousarray(part).tobytes())
+        else:
+            digest.update(repr(part).encode())
+    return _PROGRAMS["folder"] / kind / f"{digest.hexdigest()[:32]}{suffix}"
+
+
 def cached_call(name: str, fn, rebuild, *args):
     """``fn(*args)`` through a traced program kept in the cache folder (``jax.export``).
 

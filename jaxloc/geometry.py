@@ -21,16 +21,18 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
 from jax import Array
 
 #: ``R_body_cam`` (3, 3) float32: its columns are the camera axes (OpenCV) in the body frame.
-R_BODY_CAM = jnp.array(
+#: (A numpy constant: a JAX one would start the backend and compile a conversion at import.)
+R_BODY_CAM = np.array(
     [
         [0.0, 0.0, 1.0],
         [-1.0, 0.0, 0.0],
         [0.0, -1.0, 0.0],
     ],
-    dtype=jnp.float32,
+    dtype=np.float32,
 )
 
 

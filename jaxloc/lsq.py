@@ -136,17 +136,19 @@ def _make_solver(method: str, rtol: float, atol: float):
     raise ValueError(f"method must be 'lm' or 'gn', got {method!r}")
 
 
-def _stationary(residuals: Callable[[Array], Array], delta: Array, rtol: float = 1e-5) -> Array:
-    """True when a Gauss-Newton step from ``delta`` would gain less than ``rtol * (cost + 1)``.
+def _stationary(residual: Array, jacobian: Array, rtol: float = 1e-5) -> Array:
+    """True when a Gauss-Newton step from where ``residual`` (R,) and its ``jacobian`` (R, 6)
+    were taken would gain less than ``rtol * (cost + 1)``.
 
     optimistix's Cauchy test compares successive accepted iterates; in float32 the trust region
     can stall at the optimum rejecting steps whose gain is below rounding, so a converged solve
-    hits ``max_steps``. This decrement test accepts it (and rejects real non-convergence).
+    hits ``max_steps``. This decrement test accepts it (and rejects real non-convergence). The
+    caller passes the solver's own residual and Jacobian at its last accepted iterate (the
+    solution), so the test adds no second linearisation to the program.
     """
-    r, jac = residuals(delta), jax.jacfwd(residuals)(delta)
-    cost = 0.5 * jnp.sum(r * r)
-    gradient = jnp.matmul(jac.T, r, precision="highest")
-    hessian = jnp.matmul(jac.T, jac, precision="highest")
+    cost = 0.5 * jnp.sum(residual * residual)
+    gradient = jnp.matmul(jacobian.T, residual, precision="highest")
+    hessian = jnp.matmul(jacobian.T, jacobian, precision="highest")
     damping = 1e-9 * (jnp.trace(hessian) + 1.0)
     step = jnp.linalg.solve(hessian + damping * jnp.eye(6, dtype=hessian.dtype), gradient)
     decrement = 0.5 * jnp.dot(gradient, step, precision="highest")
@@ -224,8 +226,11 @@ def solve_pose(
             max_steps=max_steps,
             throw=False,
         )
+        # The Gauss-Newton family keeps the residual and Jacobian of its last accepted iterate,
+        # which is the solution it returns (every solve takes a first step, always accepted).
+        at_solution = sol.state.f_info
         converged = (sol.result == optx.RESULTS.successful) | _stationary(
-            lambda d: robust_residuals(d, block_weights), sol.value
+            at_solution.residual, at_solution.jac.as_matrix()
         )
         return sol.value, converged, sol.stats["num_steps"]
 

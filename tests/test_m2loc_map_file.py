@@ -165,3 +165,43 @@ def test_failed_save_leaves_the_old_file(described, good_file, tmp_path, monkeyp
         save_triplet_map(described, path)
     assert path.read_bytes() == good_file.read_bytes()
     assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_a_described_folder_is_kept_in_the_cache(world, tmp_path, monkeypatch):
+    """With the compilation cache on, an instance-map folder is described once: the next
+    open_triplet_map of the same instances and settings loads the kept map (identical arrays,
+    no description), other settings get their own entry, a damaged entry is described again,
+    and with the cache off nothing is kept."""
+    import jaxloc.m2loc._map as map_module
+    from jaxloc import compilation_cache
+    from jaxloc.io import open_triplet_map, save_lidar_maps
+    from jaxloc.m2loc import Instances
+
+    folder = tmp_path / "map"
+    sizes = np.ones(len(world.points))
+    save_lidar_maps(folder, Instances(world.points, world.labels, sizes), world.road_normals)
+    monkeypatch.delenv("JAXLOC_NO_CACHE", raising=False)
+    monkeypatch.setitem(compilation_cache._PROGRAMS, "folder", tmp_path / "cache")
+    config = m2loc_config(2, top_k=7)
+    first = open_triplet_map(folder, config)
+    kept = sorted((tmp_path / "cache" / "maps").glob("*.npz"))
+    assert len(kept) == 1
+
+    def no_description(*args, **kwargs):
+        raise AssertionError("the kept map was described again")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(map_module, "describe_map", no_description)
+        second = open_triplet_map(folder, config)
+    assert second.config == first.config
+    for a, b in zip(jax.tree.leaves(first), jax.tree.leaves(second), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    open_triplet_map(folder, m2loc_config(2, top_k=7, verify_radius=2.0))
+    assert len(list((tmp_path / "cache" / "maps").glob("*.npz"))) == 2
+    kept[0].write_bytes(b"not a map")
+    third = open_triplet_map(folder, config)
+    np.testing.assert_array_equal(np.asarray(third.descriptors[0]), first.descriptors[0])
+    assert load_triplet_map(kept[0]).config == first.config  # written again, whole
+    monkeypatch.setenv("JAXLOC_NO_CACHE", "1")
+    open_triplet_map(folder, m2loc_config(2, top_k=5))
+    assert len(list((tmp_path / "cache" / "maps").glob("*.npz"))) == 2

@@ -213,3 +213,33 @@ def test_scan_from_another_place_is_rejected(world, triplet_map):
     assert result.valid and rte < 7.5 and rre < 10 and result.inlier_fraction >= threshold
     with pytest.raises(ValueError, match="min_inlier_fraction"):
         TripletConfig(min_inlier_fraction=1.5)
+
+
+def test_the_query_program_holds_one_robust_solve(world, triplet_map, monkeypatch):
+    """The robust pose solve is the largest part of the query's program; the attempts, the
+    hypothesis search and their retries share one call site (a second one cost ~1-2 s of
+    compilation per program; benchmarks/results/startup_cpu.md). Counted in the traced program of
+    the robust configuration with retries, where every path that solves a pose is present."""
+    import jaxloc.m2loc._query as query_module
+    from jaxloc.m2loc._query import describe_query, register_query
+
+    config = m2loc_config(2, scale_edges=(20.0, 30.0), query_capacity=64, registration_attempts=3)
+    described = build_map(world.points, world.labels, config)
+    calls = []
+    solve = query_module.register
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return solve(*args, **kwargs)
+
+    monkeypatch.setattr(query_module, "register", counted)
+    rng = np.random.default_rng(8)
+    q = make_query(world.points, world.labels, world.road_normals, rng, max_kept=30)
+    points = np.zeros((64, 3), np.float32)
+    points[: len(q.points)] = q.points
+    classes = np.zeros(64, np.int32)
+    classes[: len(q.points)] = [config.descriptor.classes.index(int(c)) for c in q.labels]
+    mask = np.arange(64) < len(q.points)
+    descriptors, valid = describe_query(points, classes, mask, config.descriptor)
+    jax.eval_shape(register_query, described, points, classes, descriptors, valid, mask)
+    assert len(calls) == 1

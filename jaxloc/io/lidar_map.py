@@ -19,9 +19,10 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import equinox as eqx
-import jax.numpy as jnp
+import jax
 import numpy as np
 
+from jaxloc.compilation_cache import cache_entry
 from jaxloc.io._atomic import write_npz_atomic
 from jaxloc.io._map_file import read_map_file
 from jaxloc.io.errors import MapFormatError
@@ -66,7 +67,7 @@ def _config_to_dict(module) -> dict:
             value = _config_to_dict(value)
         elif isinstance(value, tuple):
             value = list(value)
-        elif isinstance(value, np.ndarray | jnp.ndarray):
+        elif isinstance(value, np.ndarray | jax.Array):
             value = value.item()
         out[field.name] = value
     return out
@@ -167,7 +168,8 @@ def load_triplet_map(path: str | os.PathLike) -> TripletMap:
         raise MapFormatError(f"{path}: bad configuration ({err})") from err
     _check_arrays(path, content, config)
     config = fit_config_to_map(config, content["points"].shape[0], stacklevel=2)
-    arrays = {name: jnp.asarray(content[name]) for name in _ARRAYS if name != "has_rsn"}
+    # device_put, not jnp.asarray: no conversion program compiled per array shape
+    arrays = {name: jax.device_put(content[name]) for name in _ARRAYS if name != "has_rsn"}
     grid = map_grid(arrays["points"], arrays["classes"], config.verify_radius)
     return TripletMap(**arrays, has_rsn=bool(content["has_rsn"]), config=config, grid=grid)
 
@@ -204,10 +206,19 @@ def open_triplet_map(
     if not path.is_file():
         config = dataclasses.replace(config or m2loc_config(3), **replace)
         instances, normals = load_lidar_map(path, config.descriptor.classes, config.use_rsn)
-        try:
-            return build_map(instances.points, instances.labels, config, normals)
-        except ValueError as error:
-            raise ValueError(f"map {path}: {error}") from error
+        kept = _kept_map_file(instances.points, instances.labels, normals, config)
+        triplet_map = _load_kept_map(kept, config) if kept is not None else None
+        if triplet_map is None:
+            try:
+                triplet_map = build_map(instances.points, instances.labels, config, normals)
+            except ValueError as error:
+                raise ValueError(f"map {path}: {error}") from error
+            if kept is not None:
+                try:
+                    save_triplet_map(triplet_map, kept)
+                except OSError:  # a cache that cannot be written costs the next run a description
+                    pass
+        return triplet_map
     if config is not None:
         raise ValueError(f"{path}: a saved map keeps the configuration it was described with")
     triplet_map = load_triplet_map(path)  # its errors name the file
@@ -217,3 +228,35 @@ def open_triplet_map(
     except ValueError as error:  # a setting the map cannot take
         raise ValueError(f"{path}: {error}") from error
     return eqx.tree_at(lambda m: m.config, triplet_map, config)
+
+
+def _kept_map_file(points, labels, normals, config: TripletConfig) -> Path | None:
+    """Where the compilation cache keeps the described map of these instances (None when the
+    cache is off): keyed by the vertices, labels, road normals and every setting of ``config``
+    (its tree structure, static settings included, and its array values)."""
+    rsn = () if normals is None else tuple(np.asarray(a) for a in normals)
+    settings = [np.asarray(leaf) for leaf in jax.tree.leaves(config)]
+    return cache_entry(
+        "maps",
+        ".npz",
+        FORMAT_VERSION,
+        np.asarray(points),
+        np.asarray(labels),
+        *rsn,
+        str(jax.tree.structure(config)),
+        *settings,
+    )
+
+
+def _load_kept_map(file: Path, config: TripletConfig) -> TripletMap | None:
+    """The described map kept in the cache, with ``config`` fitted to it as :func:`build_map`
+    does (the same SmallMapWarning); None if there is none or it does not load (described
+    again)."""
+    if not file.is_file():
+        return None
+    try:
+        kept = load_triplet_map(file)
+    except (OSError, ValueError):
+        return None
+    fitted = fit_config_to_map(config, int(kept.points.shape[0]), stacklevel=3)
+    return eqx.tree_at(lambda m: m.config, kept, fitted)

@@ -10,6 +10,7 @@ true pose apart: 0.76-0.92 for the true pose of every DCC04 development query th
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import equinox as eqx
@@ -52,8 +53,9 @@ class MapGrid(eqx.Module):
     columns: int = eqx.field(static=True)
 
 
+@functools.partial(jax.jit, static_argnames="cell")  # one program, not a dozen eager ones
 def map_grid(map_points: Array, map_classes: Array, cell: float) -> MapGrid:
-    """Sort the map's vertices into XY cells of side ``cell`` metres (traceable, static size)."""
+    """Sort the map's vertices into XY cells of side ``cell`` metres (jitted; static size)."""
     low = jnp.min(map_points[:, :2], axis=0) - cell
     # Keys are int32: cells beyond 46k per side (69 km at 1.5 m) fold together, which only adds
     # candidates that the distance test then rejects.

@@ -6,7 +6,6 @@ import time
 from typing import NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxloc.compilation_cache import cached_call
@@ -154,7 +153,7 @@ def localize_scan(
     if points.shape[0] < 3:
         return invalid_result()
     start = time.perf_counter()
-    query = tuple(jnp.asarray(a) for a in _padded(points, labels, config, None))
+    query = tuple(jax.device_put(a) for a in _padded(points, labels, config, None))
     # With the compilation cache on, both programs are traced once per machine (cached_call).
     descriptors, descriptor_valid = jax.block_until_ready(
         cached_call("describe_query", describe_query, tuple, *query, config.descriptor)

@@ -7,7 +7,7 @@ import dataclasses
 import warnings
 
 import equinox as eqx
-import jax.numpy as jnp
+import jax
 import numpy as np
 from jax import Array
 
@@ -153,17 +153,23 @@ def build_map(
             np.ones(1),
             False,
         )
-    centred = jnp.asarray(points - origin, jnp.float32)
-    positions = jnp.asarray(positions, jnp.int32)
+
+    # Host arrays go to the device as they are (device_put): jnp.asarray would compile a small
+    # conversion program per array shape, each costing a first run ~10-30 ms.
+    def device(array, dtype):
+        return jax.device_put(np.asarray(array, dtype))
+
+    centred = device(points - origin, np.float32)
+    positions = device(positions, np.int32)
     return TripletMap(
         points=centred,
         classes=positions,
-        descriptors=tuple(jnp.asarray(d) for d in descriptors),
-        valid=jnp.asarray(valid),
-        origin=jnp.asarray(origin, jnp.float32),
-        rsn_xy=jnp.asarray(rsn_xy, jnp.float32),
-        rsn_normals=jnp.asarray(normals, jnp.float32),
-        rsn_sigma=jnp.asarray(np.maximum(sigma, 1e-4), jnp.float32),
+        descriptors=tuple(device(d, np.float32) for d in descriptors),
+        valid=device(valid, bool),
+        origin=device(origin, np.float32),
+        rsn_xy=device(rsn_xy, np.float32),
+        rsn_normals=device(normals, np.float32),
+        rsn_sigma=device(np.maximum(sigma, 1e-4), np.float32),
         has_rsn=has_rsn,
         config=config,
         grid=map_grid(centred, positions, config.verify_radius),

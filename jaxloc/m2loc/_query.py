@@ -198,10 +198,9 @@ def register_query(
     stages = [clique_of_prefix((s + 1) * per_scale) for s in range(num_scales)]
     mask = jnp.any(descriptor_valid, axis=0) if mask is None else mask
 
-    def attempt(usable, first_scale=0):
+    def enhanced_clique(usable, first_scale):
         """Clique with the dynamic enhancement over the ``usable`` associations from scale
-        ``first_scale`` on, then the pose and its verification. Returns (clique, exact, scale, ok,
-        T (4, 4) centred, fraction)."""
+        ``first_scale`` on. Returns (clique, exact, scale)."""
 
         def keep_going(state):
             scale, clique, _ = state
@@ -216,7 +215,7 @@ def register_query(
 
         start = (jnp.int32(first_scale) - 1, jnp.zeros_like(usable), jnp.array(False))
         scale, clique, exact = jax.lax.while_loop(keep_going, next_scale, start)
-        return clique, exact, scale, *pose_of(clique)
+        return clique, exact, scale
 
     discount = MINIMAL_SET if config.verify_beyond_minimal_set else 0
 
@@ -265,42 +264,6 @@ def register_query(
         matrix = solution.pose.as_matrix()
         return solution.ok, matrix, verify(matrix)
 
-    if config.registration_attempts == 1:
-        clique, exact, scale, solved, matrix, fraction = attempt(assoc_valid)
-    else:
-        # Retry while the best pose so far verifies poorly; each retry drops every association
-        # that agrees with the poses tried (within verify_radius), so a rejected hypothesis and
-        # its near-copies cannot win again. The best-verified attempt is kept. A retry starts at
-        # the scale the previous attempt ended at: with fewer associations, the cliques of the
-        # smaller scales can only be smaller, so the enhancement would pass them again.
-        def disagrees(matrix):
-            moved = jnp.matmul(query_xyz, matrix[:3, :3].T, precision="highest") + matrix[:3, 3]
-            return jnp.sum((moved - map_xyz) ** 2, axis=-1) > config.verify_radius**2
-
-        def retry(state):
-            count, usable, last_scale, best = state
-            result = attempt(usable, last_scale)
-            best = keep_better(result[5] > best[5], result, best)
-            usable = usable & ~result[0] & disagrees(result[4])
-            return count + 1, usable, result[2], best
-
-        def again(state):
-            count, usable, _, best = state
-            retry_wanted = (count < config.registration_attempts) & jnp.any(usable)
-            return (count == 0) | (retry_wanted & (best[5] < config.retry_inlier_fraction))
-
-        empty = (
-            jnp.zeros_like(assoc_valid),
-            jnp.array(False),
-            jnp.int32(0),
-            jnp.array(False),
-            jnp.eye(4, dtype=jnp.float32),
-            jnp.float32(-1.0),
-        )
-        start = (jnp.int32(0), assoc_valid, jnp.int32(0), empty)
-        *_, best = jax.lax.while_loop(again, retry, start)
-        clique, exact, scale, solved, matrix, fraction = best
-
     def final_graph(scale):
         """The consistency graph of the associations up to ``scale`` (the hypotheses' graph)."""
         usable = assoc_valid & (assoc_scale <= scale)
@@ -325,48 +288,120 @@ def register_query(
             *final_graph(scale), query_xyz, map_xyz, verify_fast, config.hypotheses
         )
 
-    # The uniqueness check verifies the hypotheses of every query; the search below reuses them
-    # (its graph is the same: the search keeps the scale).
-    checked = hypotheses_of(scale) if config.ambiguity_margin is not None else None
-    if config.hypotheses:
-        # The best pose still verifies poorly: rank the greedy cliques of its final graph by the
-        # verification of their closed-form poses and refine the best one.
-        def search(best):
-            found, closed_form, _ = best_hypothesis(
-                *(checked if checked is not None else hypotheses_of(best[2]))
-            )
-            solved, refined, fraction = pose_of(found)
-            # The robust refinement of a small clique (3-6 associations) can fit it at the cost
-            # of the rest of the scan (right DCC04 poses: 0.76-0.81 closed-form, 0.52-0.59
-            # refined); keep whichever of the two poses explains more of the scan.
-            closed_fraction = verify(closed_form)
-            use_closed = (closed_fraction > fraction) & (jnp.sum(found) >= MINIMAL_SET)
-            result = (
-                found,
-                jnp.array(False),
-                best[2],
-                solved | use_closed,
-                jnp.where(use_closed, closed_form, refined),
-                jnp.where(use_closed, closed_fraction, fraction),
-            )
-            # Picking the best of many poses favours chance fits (in foreign scans of
-            # experiments/m2loc_rejection.py: tiny scans verifying 2-3 vertices beyond the minimal
-            # set, ~25-vertex scans of a similar world verifying exactly 0.5): a searched pose
-            # must verify enough vertices, and a larger fraction than a single pose must.
-            enough = (verified_count(result[5]) >= config.hypothesis_min_support - 0.5) & (
-                result[5] >= config.hypothesis_min_fraction
-            )
-            return keep_better(enough & (result[5] > best[5]), result, best)
+    def disagrees(matrix):
+        moved = jnp.matmul(query_xyz, matrix[:3, :3].T, precision="highest") + matrix[:3, 3]
+        return jnp.sum((moved - map_xyz) ** 2, axis=-1) > config.verify_radius**2
 
-        best = (clique, exact, scale, solved, matrix, fraction)
-        poor = fraction < config.retry_inlier_fraction
-        clique, exact, scale, solved, matrix, fraction = jax.lax.cond(
-            poor, search, lambda best: best, best
+    # One loop, one robust solve (its program is the largest part of this one: a second call
+    # site doubled the compilation). Iterations 0 .. registration_attempts - 1 are attempts: the
+    # clique of the usable associations and its pose; another attempt runs while the best pose so
+    # far verifies poorly, without every association that agrees with the poses tried (within
+    # verify_radius), so a rejected hypothesis and its near-copies cannot win again, and from the
+    # scale the previous attempt ended at (with fewer associations, the cliques of the smaller
+    # scales can only be smaller). The best-verified attempt is kept. Then, with ``hypotheses``,
+    # one search iteration: the verified clique hypotheses of the best attempt's final graph
+    # (kept for the uniqueness check), and where the best pose still verifies poorly, the pose of
+    # the best-verified hypothesis.
+    searching_on = config.hypotheses > 0
+    checking_on = config.ambiguity_margin is not None
+
+    def poor(best):
+        return best[5] < config.retry_inlier_fraction
+
+    def attempt_wanted(state):
+        count, usable, _, best, _, searched = state
+        retry_wanted = (count < config.registration_attempts) & jnp.any(usable)
+        return ~searched & ((count == 0) | (retry_wanted & poor(best)))
+
+    def search_wanted(state):
+        *_, best, _, searched = state
+        return ~searched & (poor(best) | checking_on) if searching_on else jnp.array(False)
+
+    def from_attempt(state):
+        _, usable, last_scale, _, checked, _ = state
+        clique, exact, scale = enhanced_clique(usable, last_scale)
+        return clique, exact, scale, jnp.eye(4, dtype=jnp.float32), checked
+
+    def from_search(state):
+        best = state[3]
+        cliques, poses, fractions = hypotheses_of(best[2])
+        found, closed_form, _ = best_hypothesis(cliques, poses, fractions)
+        return found, jnp.array(False), best[2], closed_form, (poses, fractions)
+
+    def no_pose(clique):
+        return jnp.array(False), jnp.eye(4, dtype=jnp.float32), jnp.float32(-1.0)
+
+    def solve_step(state):
+        count, usable, last_scale, best, checked, searched = state
+        attempting = attempt_wanted(state)
+        if searching_on:
+            clique, exact, scale, closed_form, checked = jax.lax.cond(
+                attempting, from_attempt, from_search, state
+            )
+            solved, matrix, fraction = jax.lax.cond(
+                attempting | poor(best), pose_of, no_pose, clique
+            )
+        else:
+            clique, exact, scale, closed_form, checked = from_attempt(state)
+            solved, matrix, fraction = pose_of(clique)
+        # An attempt: kept if it verifies better than the best so far.
+        tried = (clique, exact, scale, solved, matrix, fraction)
+        better_attempt = attempting & (fraction > best[5])
+        # The search: the robust refinement of a small clique (3-6 associations) can fit it at
+        # the cost of the rest of the scan (right DCC04 poses: 0.76-0.81 closed-form, 0.52-0.59
+        # refined), so it keeps whichever of the two poses explains more of the scan. Picking
+        # the best of many poses favours chance fits (in foreign scans of
+        # experiments/m2loc_rejection.py: tiny scans verifying 2-3 vertices beyond the minimal
+        # set, ~25-vertex scans of a similar world verifying exactly 0.5): a searched pose must
+        # verify enough vertices, and a larger fraction than a single pose must.
+        if searching_on:
+            closed_fraction = verify(closed_form)
+            use_closed = (closed_fraction > fraction) & (jnp.sum(clique) >= MINIMAL_SET)
+            fraction = jnp.where(use_closed, closed_fraction, fraction)
+            searched_pose = (
+                clique,
+                exact,
+                scale,
+                solved | use_closed,
+                jnp.where(use_closed, closed_form, matrix),
+                fraction,
+            )
+            enough = (verified_count(fraction) >= config.hypothesis_min_support - 0.5) & (
+                fraction >= config.hypothesis_min_fraction
+            )
+            better_search = ~attempting & poor(best) & enough & (fraction > best[5])
+            tried = keep_better(attempting, tried, searched_pose)
+            better_attempt = better_attempt | better_search
+        best = keep_better(better_attempt, tried, best)
+        usable = jnp.where(attempting, usable & ~clique & disagrees(matrix), usable)
+        last_scale = jnp.where(attempting, scale, last_scale)
+        return count + attempting, usable, last_scale, best, checked, searched | ~attempting
+
+    def more(state):
+        return attempt_wanted(state) | search_wanted(state)
+
+    empty = (
+        jnp.zeros_like(assoc_valid),
+        jnp.array(False),
+        jnp.int32(0),
+        jnp.array(False),
+        jnp.eye(4, dtype=jnp.float32),
+        jnp.float32(-1.0),
+    )
+    checked = (
+        jax.tree.map(
+            lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(hypotheses_of, jnp.int32(0))[1:]
         )
+        if searching_on
+        else ()
+    )
+    start = (jnp.int32(0), assoc_valid, jnp.int32(0), empty, checked, jnp.array(False))
+    *_, best, checked, _ = jax.lax.while_loop(more, solve_step, start)
+    clique, exact, scale, solved, matrix, fraction = best
     ambiguous, rival = jnp.array(False), jnp.float32(-1.0)
-    if checked is not None:
+    if checking_on:
         # Uniqueness: does a pose that puts the scan elsewhere explain it (almost) as well?
-        _, poses, fractions = checked
+        poses, fractions = checked
 
         def moved(T):
             return jnp.matmul(points, T[:3, :3].T, precision="highest") + T[:3, 3]
@@ -387,7 +422,7 @@ def register_query(
         & (fraction >= config.min_inlier_fraction)
         & (verified_count(fraction) >= config.min_verified - 0.5)  # counts, in float32
     )
-    if checked is not None:  # ambiguous: a pose valid by every other test, refused for its rival
+    if checking_on:  # ambiguous: a pose valid by every other test, refused for its rival
         ambiguous = valid & (rival >= fraction - config.ambiguity_margin)
         valid = valid & ~ambiguous
     matrix = matrix.at[:3, 3].add(triplet_map.origin)
