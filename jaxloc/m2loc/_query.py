@@ -320,13 +320,14 @@ def register_query(
     def from_attempt(state):
         _, usable, last_scale, _, checked, _ = state
         clique, exact, scale = enhanced_clique(usable, last_scale)
-        return clique, exact, scale, jnp.eye(4, dtype=jnp.float32), checked
+        return clique, exact, scale, jnp.eye(4, dtype=jnp.float32), jnp.float32(-1.0), checked
 
     def from_search(state):
         best = state[3]
         cliques, poses, fractions = hypotheses_of(best[2])
         found, closed_form, _ = best_hypothesis(cliques, poses, fractions)
-        return found, jnp.array(False), best[2], closed_form, (poses, fractions)
+        closed_fraction = verify(closed_form)
+        return found, jnp.array(False), best[2], closed_form, closed_fraction, (poses, fractions)
 
     def no_pose(clique):
         return jnp.array(False), jnp.eye(4, dtype=jnp.float32), jnp.float32(-1.0)
@@ -335,14 +336,14 @@ def register_query(
         count, usable, last_scale, best, checked, searched = state
         attempting = attempt_wanted(state)
         if searching_on:
-            clique, exact, scale, closed_form, checked = jax.lax.cond(
+            clique, exact, scale, closed_form, closed_fraction, checked = jax.lax.cond(
                 attempting, from_attempt, from_search, state
             )
             solved, matrix, fraction = jax.lax.cond(
                 attempting | poor(best), pose_of, no_pose, clique
             )
         else:
-            clique, exact, scale, closed_form, checked = from_attempt(state)
+            clique, exact, scale, closed_form, closed_fraction, checked = from_attempt(state)
             solved, matrix, fraction = pose_of(clique)
         # An attempt: kept if it verifies better than the best so far.
         tried = (clique, exact, scale, solved, matrix, fraction)
@@ -355,7 +356,6 @@ def register_query(
         # set, ~25-vertex scans of a similar world verifying exactly 0.5): a searched pose must
         # verify enough vertices, and a larger fraction than a single pose must.
         if searching_on:
-            closed_fraction = verify(closed_form)
             use_closed = (closed_fraction > fraction) & (jnp.sum(clique) >= MINIMAL_SET)
             fraction = jnp.where(use_closed, closed_fraction, fraction)
             searched_pose = (
