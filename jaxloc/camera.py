@@ -8,6 +8,7 @@ columns ``[c * W / cols, (c + 1) * W / cols)`` in continuous image coordinates (
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -96,7 +97,7 @@ def stride_grid(camera: Camera, stride: int, rows: int = 9, cols: int = 16) -> R
     uu, vv = np.meshgrid(us, vs)
     uv = np.stack([uu.ravel(), vv.ravel()], axis=-1)
     return RayGrid(
-        jnp.asarray(uv), jnp.asarray(_patch_of(camera, uv, rows, cols)), rows, cols, uu.shape
+        jax.device_put(uv), jax.device_put(_patch_of(camera, uv, rows, cols)), rows, cols, uu.shape
     )
 
 
@@ -114,5 +115,5 @@ def patch_grid(camera: Camera, rows: int, cols: int, rays_per_side: int = 1) -> 
     uu, vv = np.meshgrid(us.astype(np.float32), vs.astype(np.float32))
     uv = np.stack([uu.ravel(), vv.ravel()], axis=-1)
     return RayGrid(
-        jnp.asarray(uv), jnp.asarray(_patch_of(camera, uv, rows, cols)), rows, cols, uu.shape
+        jax.device_put(uv), jax.device_put(_patch_of(camera, uv, rows, cols)), rows, cols, uu.shape
     )

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import equinox as eqx
-import jax.numpy as jnp
+import jax
 import numpy as np
 import trimesh
 from jax import Array
@@ -337,20 +337,23 @@ def _build(labels, emb, obj_col, edges, tris, tri_obj, tri_col, capacity=None) -
     valid = np.zeros(capacity.objects, bool)
     valid[: labels.shape[0]] = True
     lo, hi = tris.reshape(-1, 3).min(0), tris.reshape(-1, 3).max(0)
+    # device_put: jnp.asarray would compile a conversion program per array
     return SceneGraph(
-        labels=jnp.asarray(_pad(labels, capacity.objects, -1, "objects")),
-        embeddings=jnp.asarray(_pad(emb, capacity.objects, 0.0, "objects")),
-        colors=jnp.asarray(_pad(obj_col, capacity.objects, 0.0, "objects")),
-        object_valid=jnp.asarray(valid),
-        edges=jnp.asarray(_pad(edges, capacity.edges, -1, "edges")),
-        triangles=jnp.asarray(_pad(tris, capacity.triangles, 0.0, "triangles")),
-        triangle_object=jnp.asarray(_pad(tri_obj, capacity.triangles, -1, "triangles")),
-        triangle_colors=jnp.asarray(_pad(tri_col, capacity.triangles, 0.0, "triangles")),
-        node_bounds=jnp.asarray(_pad_bounds(bvh, capacity)),
-        node_children=jnp.asarray(_pad(bvh.node_children, capacity.nodes, -1, "nodes")),
-        leaf_triangles=jnp.asarray(_pad(bvh.leaf_triangles, capacity.leaves, 0.0, "leaves")),
-        leaf_triangle_ids=jnp.asarray(_pad(bvh.leaf_triangle_ids, capacity.leaves, -1, "leaves")),
-        root=jnp.asarray(bvh.root, jnp.int32),
-        bounds=jnp.asarray(np.stack([lo, hi]).astype(np.float32)),
+        labels=jax.device_put(_pad(labels, capacity.objects, -1, "objects")),
+        embeddings=jax.device_put(_pad(emb, capacity.objects, 0.0, "objects")),
+        colors=jax.device_put(_pad(obj_col, capacity.objects, 0.0, "objects")),
+        object_valid=jax.device_put(valid),
+        edges=jax.device_put(_pad(edges, capacity.edges, -1, "edges")),
+        triangles=jax.device_put(_pad(tris, capacity.triangles, 0.0, "triangles")),
+        triangle_object=jax.device_put(_pad(tri_obj, capacity.triangles, -1, "triangles")),
+        triangle_colors=jax.device_put(_pad(tri_col, capacity.triangles, 0.0, "triangles")),
+        node_bounds=jax.device_put(_pad_bounds(bvh, capacity)),
+        node_children=jax.device_put(_pad(bvh.node_children, capacity.nodes, -1, "nodes")),
+        leaf_triangles=jax.device_put(_pad(bvh.leaf_triangles, capacity.leaves, 0.0, "leaves")),
+        leaf_triangle_ids=jax.device_put(
+            _pad(bvh.leaf_triangle_ids, capacity.leaves, -1, "leaves")
+        ),
+        root=jax.device_put(np.asarray(bvh.root, np.int32)),
+        bounds=jax.device_put(np.stack([lo, hi]).astype(np.float32)),
         stack_size=capacity.stack_size,
     )

@@ -58,6 +58,9 @@ from jaxloc.sg2loc.sequence import Sequence
 #: The camera recording layouts read (and detected): the ``format=`` of the camera openers.
 CAMERA_FORMATS = ("scannet-export", "sens", "3rscan")
 
+#: Ego-motion between consecutive poses (T-1, 4) of (T, 4) poses, one compiled program.
+_ego_motions = jax.jit(jax.vmap(ego_motion))
+
 
 class CameraRecording(NamedTuple):
     """A camera recording loaded as a query.
@@ -341,7 +344,7 @@ def load_camera_sequence(
     tilt = np.stack([t for _, t in pose_tilt])
     motion = np.zeros((0, 4))
     if len(kept) > 1:
-        motion = np.asarray(jax.vmap(ego_motion)(poses[:-1], poses[1:]), np.float64)
+        motion = np.asarray(_ego_motions(poses[:-1], poses[1:]), np.float64)
     sequence = Sequence(
         camera,
         np.stack(embeddings),

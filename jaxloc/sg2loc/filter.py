@@ -223,14 +223,15 @@ def frames_on_grid(sequence: Sequence, grid: RayGrid) -> Frame:
         )
     motion = np.concatenate([np.zeros((1, 4), np.float32), sequence.ego_motion], axis=0)
     return Frame(
-        index=jnp.arange(num_frames, dtype=jnp.int32),
-        motion=jnp.asarray(motion),
-        patch_embeddings=jnp.asarray(
-            sequence.patch_embeddings.reshape(num_frames, rows_p * cols_p, -1)
+        # device_put: jnp.asarray would compile a conversion program per array
+        index=jax.device_put(np.arange(num_frames, dtype=np.int32)),
+        motion=jax.device_put(motion),
+        patch_embeddings=jax.device_put(
+            np.asarray(sequence.patch_embeddings).reshape(num_frames, rows_p * cols_p, -1)
         ),
-        depth=jnp.asarray(depth),
-        rgb=jnp.asarray(rgb),
-        tilt=jnp.asarray(sequence.tilt),
+        depth=jax.device_put(depth),
+        rgb=jax.device_put(rgb),
+        tilt=jax.device_put(sequence.tilt),
     )
 
 

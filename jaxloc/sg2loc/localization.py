@@ -136,6 +136,14 @@ class SG2LocResult(NamedTuple):
     used_color: bool
 
 
+@jax.jit
+def _stacked(*per_round: list[Array]) -> tuple[Array, ...]:
+    """Each list of per-round arrays stacked on a new leading axis, in one program (eager
+    stacks compiled one small program each)."""
+    return tuple(jnp.stack(arrays) for arrays in per_round)
+
+
+@jax.jit
 def carry_back(pose: Array, ego_motion: Array) -> Array:
     """Carry the last frame's pose (4,) back to the first frame through ``ego_motion`` (T-1, 4)."""
 
@@ -234,7 +242,7 @@ def localize(
     region = Region.of_scene(scene) if config.region is None else config.region
     rows, cols = sequence.patch_shape
     keys = jax.random.split(key, len(config.strides))
-    centre = jnp.full((4,), jnp.nan, jnp.float32)
+    centre = np.full((4,), np.nan, np.float32)
     starts, round_mle, counts, particles, weights = [], [], [], [], []
     info = None
     total = len(config.strides) * sequence.num_frames
@@ -273,18 +281,21 @@ def localize(
         counts.append(info.num_particles)
         particles.append(info.particles)
         weights.append(info.particle_weights)
-        centre = carry_back(info.mle[-1], jnp.asarray(sequence.ego_motion))
+        centre = carry_back(info.mle[-1], sequence.ego_motion)
     if bar is not None:
         bar.close()
+    round_mle, starts, counts, particles, weights = _stacked(
+        round_mle, starts, counts, particles, weights
+    )
     return SG2LocResult(
         poses=info.mle,
         localized=info.verdict.localized,
-        round_mle=jnp.stack(round_mle),
-        round_start=jnp.stack(starts),
-        num_particles=jnp.stack(counts),
+        round_mle=round_mle,
+        round_start=starts,
+        num_particles=counts,
         info=info,
-        particles=jnp.stack(particles),
-        particle_weights=jnp.stack(weights),
+        particles=particles,
+        particle_weights=weights,
         used_depth=used_depth,
         used_color=used_color,
     )

@@ -36,7 +36,7 @@ from jaxloc.sg2loc.particles import ParticleState, normalized_weights, uniform_l
 RESAMPLING_METHODS = ("stratified", "systematic")
 
 # The largest float32 below 1: uniforms are clipped to it so a draw never runs off the end.
-_BELOW_ONE = float(jnp.nextafter(jnp.float32(1.0), jnp.float32(0.0)))
+_BELOW_ONE = float(np.nextafter(np.float32(1.0), np.float32(0.0)))
 
 
 def _check_method(method: str) -> None:
