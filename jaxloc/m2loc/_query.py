@@ -292,8 +292,8 @@ def register_query(
         moved = jnp.matmul(query_xyz, matrix[:3, :3].T, precision="highest") + matrix[:3, 3]
         return jnp.sum((moved - map_xyz) ** 2, axis=-1) > config.verify_radius**2
 
-    # One loop, one robust solve (its program is the largest part of this one: a second call
-    # site doubled the compilation). Iterations 0 .. registration_attempts - 1 are attempts: the
+    # One loop, one robust solve (the solve is the largest part of this program; a second call
+    # site cost about a second of compilation). Iterations 0 .. registration_attempts - 1 are attempts: the
     # clique of the usable associations and its pose; another attempt runs while the best pose so
     # far verifies poorly, without every association that agrees with the poses tried (within
     # verify_radius), so a rejected hypothesis and its near-copies cannot win again, and from the
