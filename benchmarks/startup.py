@@ -8,6 +8,8 @@ against an empty compilation cache of their own) beside ``python -c "import jax"
 * ``jaxloc localize-lidar MAP SCAN``: one scan, first run (empty cache) and second run; MAP is a
   real HeLiPR map of ``../shared/data`` with the real SemanticKITTI scan when present (KAIST04,
   one scale), else the synthetic sparse world and one of its queries as a centroid file;
+* ``jaxloc build-lidar-map SEQ OUT``: a synthetic 16-scan SemanticKITTI sequence (labelled
+  scans and poses) into an instance map, first and second run;
 * ``jaxloc localize-camera MAP.npz SEQ``: a 6-frame synthetic ScanNet export folder at 160x120,
   300 particles, first and second run;
 * ``jaxloc demo`` (the paper's scale unless ``--demo-args`` says else): first and second run.
@@ -79,6 +81,17 @@ def lidar_inputs(work: Path) -> list[str]:
     return [str(work / "map"), str(work / "scan.txt")]
 
 
+def lidar_sequence_inputs(work: Path) -> list[str]:
+    """SEQ OUT of the build-lidar-map runs: a synthetic labelled SemanticKITTI sequence."""
+    from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
+    from jaxloc.synthetic.outdoor import make_outdoor_world
+
+    world = make_outdoor_world("dense", seed=2, blocks=1, bridge_length=0)
+    scans = make_lidar_sequence(world, (10.0, 0.0), (190.0, 0.0), 16, seed=3, max_range=30.0)
+    write_semantickitti_sequence(work / "kitti_seq", scans)
+    return [str(work / "kitti_seq"), str(work / "built_map")]
+
+
 def camera_inputs(work: Path) -> list[str]:
     """MAP.npz SEQ of the localize-camera runs: a small synthetic episode as an export folder."""
     from jaxloc.io import save_scene
@@ -145,6 +158,8 @@ def main() -> None:
         cache = not args.no_cache
         lidar = ["localize-lidar", *lidar_inputs(work)]
         rows.append(("jaxloc localize-lidar MAP SCAN", *pair("lidar", lidar, work, cache)))
+        build = ["build-lidar-map", *lidar_sequence_inputs(work)]
+        rows.append(("jaxloc build-lidar-map SEQ OUT", *pair("build", build, work, cache)))
         camera = ["localize-camera", *camera_inputs(work)]
         rows.append(("jaxloc localize-camera MAP.npz SEQ", *pair("camera", camera, work, cache)))
         if not args.skip_demo:

@@ -14,7 +14,9 @@ entries go first) and can be cleared at any time (:func:`clear_compilation_cache
 --clear``): a missing entry is compiled again. Entries are keyed by JAX on the program, the JAX /
 jaxlib version, the backend and the compile options, so a cache shared by versions or machines
 never serves the wrong program; an unreadable or damaged entry is reported as a warning and the
-program is compiled instead.
+program is compiled instead. Beside JAX's entries the folder keeps jaxloc's traced programs
+(``programs/``, :func:`cached_call`) and described map folders (``maps/``, :func:`cache_entry`);
+those are not counted in the size bound, and ``jaxloc cache --clear`` removes them too.
 
 On some x86 CPUs (AMD Zen 4 here; Cascade Lake in jax-ml/jax#38445) jaxlib 0.9-0.10 logs two
 ``E ... cpu_aot_loader.cc] Loading XLA:CPU AOT result. Target machine feature +prefer-no-gather is
