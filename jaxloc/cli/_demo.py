@@ -124,16 +124,15 @@ def run_demo(args: argparse.Namespace) -> int:
     camera = episode.sequence.camera
     grid = stride_grid(camera, min(10, strides[0]), *episode.sequence.patch_shape)
     num_views = min(3, args.frames)
-    views = jax.jit(render_batch)(
-        scene, jax.numpy.asarray(episode.poses_gt[:num_views]), camera, grid
-    )
+    poses = np.asarray(episode.poses_gt[:num_views], np.float32)
+    # the views on the host at once: eager indexing compiles a small program per array shape
+    views = jax.tree.map(np.asarray, jax.jit(render_batch)(scene, poses, camera, grid))
     for t in range(num_views):
-        seen = np.unique(np.asarray(views.object_id[t]))
-        depth = np.asarray(views.depth[t])
-        depth = depth[np.isfinite(depth)]
+        seen = np.unique(views.object_id[t])
+        depth = views.depth[t][np.isfinite(views.depth[t])]
         print(
             f"view {t + 1}: {np.sum(seen >= 0)} objects visible, depth {depth.min():.2f}-"
-            f"{depth.max():.2f} m, {np.mean(np.asarray(views.valid[t])):.0%} rays hit"
+            f"{depth.max():.2f} m, {np.mean(views.valid[t]):.0%} rays hit"
         )
     sg2loc_config = SG2LocConfig(
         capacity=args.particles,

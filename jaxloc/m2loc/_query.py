@@ -292,16 +292,16 @@ def register_query(
         moved = jnp.matmul(query_xyz, matrix[:3, :3].T, precision="highest") + matrix[:3, 3]
         return jnp.sum((moved - map_xyz) ** 2, axis=-1) > config.verify_radius**2
 
-    # One loop, one robust solve (the solve is the largest part of this program; a second call
-    # site cost about a second of compilation). Iterations 0 .. registration_attempts - 1 are attempts: the
-    # clique of the usable associations and its pose; another attempt runs while the best pose so
-    # far verifies poorly, without every association that agrees with the poses tried (within
+    # One loop, one robust solve (the solve is the largest part of this program; a second call site
+    # cost about a second of compilation). Iterations 0 .. registration_attempts - 1 are attempts:
+    # the clique of the usable associations and its pose; another attempt runs while the best pose
+    # so far verifies poorly, without every association that agrees with the poses tried (within
     # verify_radius), so a rejected hypothesis and its near-copies cannot win again, and from the
     # scale the previous attempt ended at (with fewer associations, the cliques of the smaller
-    # scales can only be smaller). The best-verified attempt is kept. Then, with ``hypotheses``,
-    # one search iteration: the verified clique hypotheses of the best attempt's final graph
-    # (kept for the uniqueness check), and where the best pose still verifies poorly, the pose of
-    # the best-verified hypothesis.
+    # scales can only be smaller). The best-verified attempt is kept. Then, with ``hypotheses``, one
+    # search iteration: the verified clique hypotheses of the best attempt's final graph (kept for
+    # the uniqueness check), and where the best pose still verifies poorly, the pose of the
+    # best-verified hypothesis.
     searching_on = config.hypotheses > 0
     checking_on = config.ambiguity_margin is not None
 

@@ -26,6 +26,7 @@ from jaxloc.raycasting.engines import check_engine_name
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc._convert import as_float32
 from jaxloc.sg2loc.filter import (
+    Frame,
     Region,
     StepConfig,
     StepInfo,
@@ -188,12 +189,26 @@ def _round_with_progress(key, init_args, frames, scene, step_config, capacity, m
     state = _jit_initial_state(key_init, init_args, step_config, capacity, mesh)
     infos = []
     for t in range(frames.index.shape[0]):
-        frame = jax.tree.map(lambda a, t=t: a[t], frames)
-        frame_key = jax.random.fold_in(key_run, frame.index)
+        frame_key, frame = _frame_of(frames, key_run, t)
         state, info = _jit_step(frame_key, state, frame, scene, step_config, mesh)
         infos.append(info)
         bar.update(1)
-    return state, jax.tree.map(lambda *xs: jnp.stack(xs), *infos)
+    return state, _stacked_infos(infos)
+
+
+# Jitted, not eager: eager indexing and stacking compiled a small program per array shape.
+@jax.jit
+def _frame_of(frames: Frame, key_run: Array, t: Array) -> tuple[Array, Frame]:
+    """Frame ``t`` of ``frames`` and its key ``fold_in(key_run, index)`` (one program per round;
+    ``t`` is traced)."""
+    frame = jax.tree.map(lambda a: a[t], frames)
+    return jax.random.fold_in(key_run, frame.index), frame
+
+
+@jax.jit
+def _stacked_infos(infos: list[StepInfo]) -> StepInfo:
+    """The per-frame step infos stacked along a leading time axis."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *infos)
 
 
 def localize(
