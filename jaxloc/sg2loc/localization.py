@@ -10,7 +10,7 @@ casts a denser ray grid. The paper's defaults are strides 20, 8, 4 and boxes of 
 from __future__ import annotations
 
 import dataclasses
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -138,13 +138,6 @@ class SG2LocResult(NamedTuple):
 
 
 @jax.jit
-def _stacked(*per_round: list[Array]) -> tuple[Array, ...]:
-    """Each list of per-round arrays stacked on a new leading axis, in one program (eager
-    stacks compiled one small program each)."""
-    return tuple(jnp.stack(arrays) for arrays in per_round)
-
-
-@jax.jit
 def carry_back(pose: Array, ego_motion: Array) -> Array:
     """Carry the last frame's pose (4,) back to the first frame through ``ego_motion`` (T-1, 4)."""
 
@@ -193,7 +186,7 @@ def _round_with_progress(key, init_args, frames, scene, step_config, capacity, m
         state, info = _jit_step(frame_key, state, frame, scene, step_config, mesh)
         infos.append(info)
         bar.update(1)
-    return state, _stacked_infos(infos)
+    return state, _stacked(infos)
 
 
 # Jitted, not eager: eager indexing and stacking compiled a small program per array shape.
@@ -206,9 +199,10 @@ def _frame_of(frames: Frame, key_run: Array, t: Array) -> tuple[Array, Frame]:
 
 
 @jax.jit
-def _stacked_infos(infos: list[StepInfo]) -> StepInfo:
-    """The per-frame step infos stacked along a leading time axis."""
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *infos)
+def _stacked(items: list) -> Any:
+    """A list of pytrees of one structure (per-frame step infos, per-round results) as one
+    pytree, every leaf stacked along a new leading axis."""
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *items)
 
 
 def localize(
@@ -300,7 +294,7 @@ def localize(
     if bar is not None:
         bar.close()
     round_mle, starts, counts, particles, weights = _stacked(
-        round_mle, starts, counts, particles, weights
+        list(zip(round_mle, starts, counts, particles, weights, strict=True))
     )
     return SG2LocResult(
         poses=info.mle,
