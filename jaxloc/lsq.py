@@ -1,7 +1,7 @@
 """Robust SE(3) pose least squares, shared by the LiDAR and the camera pose refinements.
 
 :func:`solve_pose` minimises ``sum_i rho(|r_i(T)|^2) + |p(T)|^2`` over a pose ``T`` by optimising a
-tangent-space perturbation ``delta`` (6,) with ``T = T_init @ SE3.exp(delta)`` using
+perturbation ``delta = (t, omega)`` (6,) with ``T = T_init @ (SO3.exp(omega), t)`` using
 ``optimistix.least_squares`` (Levenberg-Marquardt or Gauss-Newton, ``throw=False``).
 
 * ``r_i`` are residual blocks returned by the caller's ``residual_fn(T, args)``: shape (M, D) (a
@@ -33,7 +33,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jaxlie
+import numpy as np
 from jax import Array
+from jax.custom_derivatives import SymbolicZero
 
 #: The robust losses of :class:`RobustLoss` (``RobustLoss.kind``).
 LossKind = Literal["none", "huber", "cauchy", "gnc_tls"]
@@ -155,6 +157,55 @@ def _stationary(residual: Array, jacobian: Array, rtol: float = 1e-5) -> Array:
     return jnp.isfinite(decrement) & (decrement <= rtol * (cost + 1.0))
 
 
+def _is_symbolic_zero(tangent: Any) -> bool:
+    return isinstance(tangent, SymbolicZero)
+
+
+def _dense_jacobian(fn: Callable[..., Array]) -> Callable[..., Array]:
+    """``fn(delta, operands)`` with a JVP that forms the Jacobian in ``delta`` once (``jacfwd``).
+
+    Linearised in ``delta`` alone (as optimistix does at every step), the tangent map becomes one
+    product with a dense (R, 6) matrix, so the solver's uses of it (the damped step, the gradient,
+    the predicted reduction, the stationarity test) are small products instead of copies of the
+    residuals' derivative graph; a smaller program that computes the same values. Tangents of
+    ``operands`` (an array pytree: the caller's arguments, for implicit differentiation of the
+    solution) go through ``fn``'s own JVP.
+    """
+    wrapped = jax.custom_jvp(fn)
+
+    def jvp(primals, tangents):
+        delta, operands = primals
+        delta_tangent, operand_tangents = tangents
+        jacobian, value = jax.jacfwd(lambda d: (fn(d, operands),) * 2, has_aux=True)(delta)
+        out = (
+            jnp.zeros_like(value)
+            if _is_symbolic_zero(delta_tangent)
+            else jnp.matmul(jacobian, delta_tangent, precision="highest")
+        )
+        leaves = jax.tree.leaves(operand_tangents, is_leaf=_is_symbolic_zero)
+        if not all(_is_symbolic_zero(t) for t in leaves):
+            dense = jax.tree.map(
+                lambda t: np.zeros(t.aval.shape, t.aval.dtype) if _is_symbolic_zero(t) else t,
+                operand_tangents,
+                is_leaf=_is_symbolic_zero,
+            )
+            out = out + jax.jvp(lambda ops: fn(delta, ops), (operands,), (dense,))[1]
+        return value, out
+
+    wrapped.defjvp(jvp, symbolic_zeros=True)
+    return wrapped
+
+
+def _retraction(delta: Array) -> jaxlie.SE3:
+    """The perturbation ``(SO3.exp(omega), t)`` of ``delta = (t, omega)`` (6,).
+
+    An SO(3) x R^3 retraction: its first-order term is ``SE3.exp``'s, and without ``SE3.exp``'s V
+    matrix (and its small-angle branches) the solve's program is ~20 % smaller and compiles ~1 s
+    faster on the M2Loc query.
+    """
+    return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.exp(delta[3:]), delta[:3])
+
+
 def _finite_pose(T: jaxlie.SE3) -> Array:
     return jnp.all(jnp.isfinite(T.parameters()))
 
@@ -174,7 +225,8 @@ def solve_pose(
     atol: float = 1e-5,
     method: Literal["lm", "gn"] = "lm",
 ) -> PoseSolution:
-    """Robust least-squares pose ``T = T_init @ SE3.exp(delta)``; pure, jit/vmap-able.
+    """Robust least-squares pose ``T = T_init @ (SO3.exp(omega), t)``, ``delta = (t, omega)``;
+    pure, jit/vmap-able.
 
     Args:
         residual_fn: ``residual_fn(T, args) -> (M, D) or (M,)`` residual blocks; blocks that should
@@ -198,22 +250,34 @@ def solve_pose(
     delta0 = jnp.zeros(6, dtype)
 
     def pose_of(delta: Array) -> jaxlie.SE3:
-        return T_init @ jaxlie.SE3.exp(delta)
+        return T_init @ _retraction(delta)
 
-    def raw_blocks(delta: Array) -> Array:
-        return _blocks(residual_fn(pose_of(delta), args))
+    def raw_blocks(T: jaxlie.SE3) -> Array:
+        return _blocks(residual_fn(T, args))
 
-    def prior_vector(delta: Array) -> Array:
+    def prior_vector(T: jaxlie.SE3) -> Array:
         if prior_fn is None:
             return jnp.zeros((0,), dtype)
-        return jnp.ravel(prior_fn(pose_of(delta), args))
+        return jnp.ravel(prior_fn(T, args))
 
-    def robust_residuals(delta: Array, block_weights: Array) -> Array:
-        blocks = raw_blocks(delta)
+    # Everything traced that the residuals read is an explicit operand of the custom JVP (a
+    # custom_jvp function must not close over values that are differentiated).
+    dynamic, static = eqx.partition((T_init, args), eqx.is_array)
+
+    @_dense_jacobian
+    def weighted_residuals(delta: Array, operands) -> Array:
+        block_weights, dynamic_part = operands
+        start, call_args = eqx.combine(dynamic_part, static)
+        T = start @ _retraction(delta)  # once: the residuals and the prior share it
+        blocks = _blocks(residual_fn(T, call_args))
         blocks = jnp.where(jnp.isfinite(blocks), blocks, 0.0)
         squared = jnp.sum(blocks * blocks, axis=-1)
         factor = robust_block_scale(squared, loss) * jnp.sqrt(block_weights)
-        return jnp.concatenate([jnp.ravel(blocks * factor[:, None]), prior_vector(delta)])
+        prior = jnp.zeros((0,), dtype) if prior_fn is None else jnp.ravel(prior_fn(T, call_args))
+        return jnp.concatenate([jnp.ravel(blocks * factor[:, None]), prior])
+
+    def robust_residuals(delta: Array, block_weights: Array) -> Array:
+        return weighted_residuals(delta, (block_weights, dynamic))
 
     def solve(delta_start: Array, block_weights: Array):
         import optimistix as optx
@@ -234,12 +298,12 @@ def solve_pose(
         )
         return sol.value, converged, sol.stats["num_steps"]
 
-    initial_blocks = raw_blocks(delta0)
+    initial_blocks = raw_blocks(T_init)
     block_finite = jnp.all(jnp.isfinite(initial_blocks), axis=-1)
     weights = block_finite.astype(dtype)
     inputs_ok = (
         jnp.all(block_finite)
-        & jnp.all(jnp.isfinite(prior_vector(delta0)))
+        & jnp.all(jnp.isfinite(prior_vector(T_init)))
         & _finite_pose(T_init)
         & (initial_blocks.shape[0] > 0)
     )
@@ -263,7 +327,9 @@ def solve_pose(
             delta, mu, growth, steps, success, weights, settled = carry
 
             def run():
-                sq = jnp.sum(jnp.where(block_finite[:, None], raw_blocks(delta), 0.0) ** 2, axis=-1)
+                sq = jnp.sum(
+                    jnp.where(block_finite[:, None], raw_blocks(pose_of(delta)), 0.0) ** 2, axis=-1
+                )
                 mu0, growth0 = convex_start(sq)
                 first_gnc = index == 1
                 round_mu = jnp.where(first_gnc, mu0, mu)

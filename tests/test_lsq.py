@@ -120,6 +120,61 @@ def test_gradient_of_solution_is_finite():
     assert np.abs(np.asarray(grad)).sum() > 0
 
 
+def test_gradient_of_solution_matches_finite_differences():
+    # Gradients of the solved pose (implicit differentiation through the solve) and of its cost
+    # (the residuals' own JVP in the operands) vs central differences along a random direction.
+    source, target, _ = make_problem(noise=0.01, seed=5)
+    direction = np.random.default_rng(6).normal(size=target.shape).astype(np.float32)
+
+    def solved(t):
+        solution = solve_pose(residuals, IDENTITY, (source, t), rtol=1e-7, atol=1e-7)
+        return solution.pose.translation()[0], solution.cost
+
+    for output in range(2):
+        f = jax.jit(lambda t, k=output: solved(t)[k])
+        slope = float(jnp.vdot(jax.jit(jax.grad(f))(jnp.asarray(target)), direction))
+        h = 1e-2
+        finite = (float(f(target + h * direction)) - float(f(target - h * direction))) / (2 * h)
+        assert abs(finite) > 0.05  # a direction both outputs move along
+        assert abs(slope - finite) <= 2e-2 * abs(finite), (output, slope, finite)
+
+
+def test_dense_jacobian_jvp_equals_the_plain_jvp():
+    from jaxloc.lsq import _dense_jacobian
+
+    def fn(delta, operands):
+        weights, points = operands
+        return jnp.ravel(
+            jnp.sin(points @ delta[:3]) * weights + jnp.cos(delta[3:]).sum() * points[:, 0]
+        )
+
+    rng = np.random.default_rng(7)
+    delta = jnp.asarray(rng.normal(size=6), jnp.float32)
+    operands = (
+        jnp.asarray(rng.random(5), jnp.float32),
+        jnp.asarray(rng.normal(size=(5, 3)), jnp.float32),
+    )
+    t_delta = jnp.asarray(rng.normal(size=6), jnp.float32)
+    t_operands = jax.tree.map(
+        lambda x: jnp.asarray(rng.normal(size=x.shape), jnp.float32), operands
+    )
+    dense = _dense_jacobian(fn)
+    zeros = jax.tree.map(jnp.zeros_like, operands)
+    for tangents in [(t_delta, zeros), (jnp.zeros(6), t_operands), (t_delta, t_operands)]:
+        want = jax.jvp(fn, (delta, operands), tangents)
+        got = jax.jit(lambda p, t: jax.jvp(dense, p, t))((delta, operands), tangents)
+        np.testing.assert_allclose(np.asarray(got[0]), np.asarray(want[0]), rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(got[1]), np.asarray(want[1]), rtol=1e-5, atol=1e-5)
+    # Linearised in delta alone (as optimistix does): the tangent map is the dense Jacobian.
+    _, linear = jax.linearize(lambda d: dense(d, operands), delta)
+    np.testing.assert_allclose(
+        np.asarray(linear(t_delta)),
+        np.asarray(jax.jvp(lambda d: fn(d, operands), (delta,), (t_delta,))[1]),
+        rtol=1e-5,
+        atol=1e-5,
+    )
+
+
 def test_non_finite_input_gives_not_ok_and_no_nan():
     source, target, _ = make_problem(seed=4)
     target[3, 1] = np.nan

@@ -1,8 +1,8 @@
 """Visual 6-DoF pose refinement of SG2Loc's estimate (replaces SG2Loc's RoMa + PnP step).
 
 Starting from the filter's 4-DoF estimate ``(x, y, z, yaw)`` plus the frame's known tilt, a robust
-Levenberg-Marquardt solve (:func:`jaxloc.lsq.solve_pose`, tangent-space updates
-``T = T_init @ SE3.exp(delta)``) refines ``T_world_cam`` with
+Levenberg-Marquardt solve (:func:`jaxloc.lsq.solve_pose`, updates
+``T = T_init @ (SO3.exp(omega), t)``) refines ``T_world_cam`` with
 
 (a) **depth-to-mesh residuals**: a strided subset of the depth image's pixels is back-projected with
     the intrinsics and the current pose, ``p_world = T_world_cam (depth * K^-1 [u, v, 1])``, and
