@@ -181,30 +181,22 @@ def cache_entry(kind: str, suffix: str, *parts) -> Path | None:
     return _PROGRAMS["folder"] / kind / f"{digest.hexdigest()[:32]}{suffix}"
 
 
-def cached_call(name: str, fn, rebuild, *args):
-    """``fn(*args)`` through a traced program kept in the cache folder (``jax.export``).
+def _is_dynamic(value) -> bool:
+    """An argument leaf that is traced: an array, or a ``jax.ShapeDtypeStruct`` standing for one."""
+    import equinox as eqx
+    import jax
 
-    With the compilation cache on, the first call of a key traces ``fn`` once and stores the
-    exported program (``programs/<name>-<key>.jaxexport``); a later process loads it instead of
-    tracing again, and JAX's persistent cache then loads its compiled form: a warm start neither
-    traces nor compiles. The key covers the JAX and jaxlib versions, the backend, jaxloc's source
-    files, the arguments' tree structure, shapes and dtypes and their static (non-array) parts.
-    Without the cache, or for a file that does not load, ``fn`` is called (and traced) as usual.
+    return eqx.is_array(value) or isinstance(value, jax.ShapeDtypeStruct)
 
-    Args:
-        name: the program's name (file names and errors).
-        fn: a function of pytrees of arrays and static values (jitted or not).
-        rebuild: builds ``fn``'s output from the flat tuple of its array leaves, in
-            ``jax.tree.leaves`` order (e.g. ``tuple``, or an ``eqx.Module`` class's constructor).
-        args: the arguments.
-    """
-    if not cache_enabled():
-        return fn(*args)
+
+def _program(name: str, fn, args):
+    """``(key, exported, leaves)`` of ``fn(*args)``: the exported program of its key (loaded from
+    the cache folder, or traced and stored now) and the flat array (or shape) leaves of ``args``."""
     import equinox as eqx
     import jax
     import jax.export
 
-    dynamic, static = eqx.partition(args, eqx.is_array)
+    dynamic, static = eqx.partition(args, _is_dynamic)
     leaves, treedef = jax.tree.flatten(dynamic)
     spec = [(tuple(x.shape), str(x.dtype)) for x in leaves]
     device = jax.devices()[0]
@@ -232,4 +224,72 @@ def cached_call(name: str, fn, rebuild, *args):
         temporary.write_bytes(exported.serialize())
         os.replace(temporary, path)  # atomic: a reader sees the old file or the whole new one
     _PROGRAMS[key] = exported
-    return rebuild(exported.call(*leaves))
+    return key, exported, leaves
+
+
+def _compile(exported, leaves):
+    """The compiled program of ``exported`` for arguments shaped like ``leaves`` (through JAX's
+    persistent cache: the same lowering whether the leaves are arrays or shapes)."""
+    import jax
+
+    shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
+    return jax.jit(exported.call).lower(*shapes).compile()
+
+
+def prepare_call(name: str, fn, *args) -> tuple | None:
+    """Trace ``fn(*args)`` now and compile it in a background thread, for a later
+    :func:`cached_call` with arguments of the same shapes (and equal static parts) to find ready.
+
+    ``args`` are as :func:`cached_call`'s, with ``jax.ShapeDtypeStruct`` leaves allowed in place of
+    arrays: a caller that knows the shapes before it has the values (a map's size before it is
+    described) overlaps XLA's compilation (C++, without the GIL) with that work. The compilation
+    takes both cores while it runs. Without the cache, nothing is done (``fn`` then compiles at
+    its first call, as usual).
+
+    Returns:
+        The shapes of ``fn``'s output leaves (a tuple of ``jax.ShapeDtypeStruct``, in
+        ``jax.tree.leaves`` order, to chain a program that takes them), None without the cache.
+    """
+    if not cache_enabled():
+        return None
+    from concurrent.futures import ThreadPoolExecutor
+
+    import jax
+
+    key, exported, leaves = _program(name, fn, args)
+    if ("compiled", key) not in _PROGRAMS:
+        if "compiler" not in _PROGRAMS:
+            _PROGRAMS["compiler"] = ThreadPoolExecutor(1, thread_name_prefix="jaxloc-compile")
+        _PROGRAMS["compiled", key] = _PROGRAMS["compiler"].submit(_compile, exported, leaves)
+    return tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in exported.out_avals)
+
+
+def cached_call(name: str, fn, rebuild, *args):
+    """``fn(*args)`` through a traced program kept in the cache folder (``jax.export``).
+
+    With the compilation cache on, the first call of a key traces ``fn`` once and stores the
+    exported program (``programs/<name>-<key>.jaxexport``); a later process loads it instead of
+    tracing again, and JAX's persistent cache then loads its compiled form: a warm start neither
+    traces nor compiles. The key covers the JAX and jaxlib versions, the backend, jaxloc's source
+    files, the arguments' tree structure, shapes and dtypes and their static (non-array) parts.
+    A program :func:`prepare_call` compiles in the background is waited for, not compiled again.
+    Without the cache, or for a file that does not load, ``fn`` is called (and traced) as usual.
+
+    Args:
+        name: the program's name (file names and errors).
+        fn: a function of pytrees of arrays and static values (jitted or not).
+        rebuild: builds ``fn``'s output from the flat tuple of its array leaves, in
+            ``jax.tree.leaves`` order (e.g. ``tuple``, or an ``eqx.Module`` class's constructor).
+        args: the arguments.
+    """
+    if not cache_enabled():
+        return fn(*args)
+    from concurrent.futures import Future
+
+    key, exported, leaves = _program(name, fn, args)
+    compiled = _PROGRAMS.get(("compiled", key))
+    if compiled is None:
+        compiled = _PROGRAMS["compiled", key] = _compile(exported, leaves)
+    elif isinstance(compiled, Future):  # prepare_call's, compiling or done
+        compiled = _PROGRAMS["compiled", key] = compiled.result()
+    return rebuild(compiled(*leaves))

@@ -3,6 +3,7 @@ the M2Loc default configuration."""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import json
 import zipfile
@@ -205,3 +206,79 @@ def test_a_described_folder_is_kept_in_the_cache(world, tmp_path, monkeypatch):
     monkeypatch.setenv("JAXLOC_NO_CACHE", "1")
     open_triplet_map(folder, m2loc_config(2, top_k=5))
     assert len(list((tmp_path / "cache" / "maps").glob("*.npz"))) == 2
+
+
+def shapes_and_static(triplet_map):
+    """What a compiled query program depends on: the tree, the leaves' shapes and dtypes, and
+    the static parts (as jaxloc.compilation_cache keys them)."""
+    import equinox as eqx
+
+    dynamic, static = eqx.partition(
+        triplet_map, lambda x: eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
+    )
+    leaves, treedef = jax.tree.flatten(dynamic)
+    return str(treedef), [(tuple(x.shape), str(x.dtype)) for x in leaves], repr(static)
+
+
+@pytest.mark.parametrize("case", ["m2loc", "tripletloc", "small"])
+def test_the_map_spec_is_what_build_map_returns(world, case):
+    from jaxloc.m2loc import triplet_map_spec
+
+    points, labels, normals = world.points, world.labels, world.road_normals
+    config = m2loc_config(2, top_k=7)
+    if case == "tripletloc":
+        config, normals = tripletloc_config(), None
+    if case == "small":  # top_k clamped to the 5 vertices
+        points, labels, config = points[:5], labels[:5], m2loc_config(1)
+    with pytest.warns() if case == "small" else contextlib.nullcontext():
+        built = build_map(points, labels, config, normals)
+    spec = triplet_map_spec(len(points), config, normals)
+    assert shapes_and_static(spec) == shapes_and_static(built)
+
+
+def test_query_programs_compile_while_the_folder_is_described(world, tmp_path, monkeypatch):
+    """open_triplet_map(..., query_capacities) exports the query programs before the map is
+    described and compiles them in the background; localize_scan then runs those programs (no
+    export or compilation of its own) and gives what it gives without the cache."""
+    from concurrent.futures import Future
+
+    from jaxloc import compilation_cache
+    from jaxloc.io import open_triplet_map, save_lidar_maps
+    from jaxloc.m2loc import Instances, localize_scan, query_capacity
+    from jaxloc.synthetic.outdoor import make_query
+
+    folder = tmp_path / "map"
+    sizes = np.ones(len(world.points))
+    save_lidar_maps(folder, Instances(world.points, world.labels, sizes), world.road_normals)
+    query = make_query(
+        world.points, world.labels, world.road_normals, np.random.default_rng(4), max_kept=25
+    )
+    config = m2loc_config(2, top_k=7)
+    expected = localize_scan(open_triplet_map(folder, config), None, query.points, query.labels)
+    monkeypatch.delenv("JAXLOC_NO_CACHE", raising=False)
+    monkeypatch.setitem(compilation_cache._PROGRAMS, "folder", tmp_path / "cache")
+    calls = {"export": [], "compile": 0}
+    export, compile_ = compilation_cache._export, compilation_cache._compile
+
+    def counted_export(fn, leaves):
+        calls["export"].append(len(leaves))
+        return export(fn, leaves)
+
+    def counted_compile(exported, leaves):
+        calls["compile"] += 1
+        return compile_(exported, leaves)
+
+    monkeypatch.setattr(compilation_cache, "_export", counted_export)
+    monkeypatch.setattr(compilation_cache, "_compile", counted_compile)
+    capacity = query_capacity(len(query.points), config)
+    triplet_map = open_triplet_map(folder, config, query_capacities=(capacity,))
+    prepared = {k: v for k, v in compilation_cache._PROGRAMS.items() if k[0] == "compiled"}
+    query_programs = [k for k, v in prepared.items() if isinstance(v, Future)]
+    assert len(query_programs) == 2  # describe_query and register_query, handed to the thread
+    exports, compiles = len(calls["export"]), calls["compile"]
+    result = localize_scan(triplet_map, None, query.points, query.labels)
+    assert (len(calls["export"]), calls["compile"]) == (exports, compiles)  # none of its own
+    assert all(not isinstance(compilation_cache._PROGRAMS[k], Future) for k in query_programs)
+    assert result.valid == expected.valid and expected.valid  # a query that localizes
+    np.testing.assert_allclose(result.pose, expected.pose, atol=1e-4)
+    np.testing.assert_array_equal(result.inliers, expected.inliers)

@@ -153,10 +153,26 @@ def describe_map(
         raise InputError(f"map {name}: {error}") from error
 
 
-def open_map(path: Path, args: argparse.Namespace):
+def _first_query_capacity(recording, config, args: argparse.Namespace) -> tuple[int, ...]:
+    """The padded size of the first scan's query, for its programs to compile while the map is
+    described; () for a drive that runs other programs (--accumulate, --track), a scan too small
+    to localize, or one that does not read (its error comes when it is localized)."""
+    from jaxloc.m2loc import query_capacity
+
+    if recording is None or not len(recording) or args.track or drive_options(args)[0] > 1:
+        return ()
+    try:
+        scan = recording.instances(0, config.descriptor.classes)
+    except (OSError, ValueError):
+        return ()
+    return (query_capacity(len(scan.points), config),) if len(scan.points) >= 3 else ()
+
+
+def open_map(path: Path, args: argparse.Namespace, recording=None):
     """The described map of ``MAP`` (:func:`jaxloc.io.open_triplet_map`): a saved ``.npz`` (the
     options that do not change descriptors override its settings) or a map folder (described with
-    the options). Returns the TripletMap and the number of seconds it took."""
+    the options, while the query programs of ``recording``'s first scan compile). Returns the
+    TripletMap and the number of seconds it took."""
     from jaxloc.io import open_triplet_map
 
     start = time.perf_counter()
@@ -169,7 +185,9 @@ def open_map(path: Path, args: argparse.Namespace):
         if path.is_file():
             triplet_map = open_triplet_map(path, replace=_matching_options(args))
         else:
-            triplet_map = open_triplet_map(path, triplet_config(args))
+            config = triplet_config(args)
+            capacities = _first_query_capacity(recording, config, args)
+            triplet_map = open_triplet_map(path, config, query_capacities=capacities)
     return triplet_map, time.perf_counter() - start
 
 
@@ -271,7 +289,7 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
         )
         drive = recording if args.odometry is None else recording.with_poses(args.odometry)
     note_sequences(args, recording.sequences)
-    triplet_map, build_s = open_map(args.map, args)
+    triplet_map, build_s = open_map(args.map, args, recording)
     if args.save_map is not None:
         save_triplet_map(triplet_map, args.save_map)
     num_vertices, has_rsn = int(triplet_map.points.shape[0]), triplet_map.has_rsn

@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import equinox as eqx
@@ -36,6 +36,8 @@ from jaxloc.m2loc import (
     fit_config_to_map,
     m2loc_config,
     map_grid,
+    prepare_queries,
+    triplet_map_spec,
 )
 
 #: The ``format`` entry of a triplet-map file (a file without it is refused).
@@ -179,6 +181,7 @@ def open_triplet_map(
     config: TripletConfig | None = None,
     *,
     replace: Mapping[str, object] | None = None,
+    query_capacities: Sequence[int] = (),
 ) -> TripletMap:
     """The described map at ``path``: a file saved by :func:`save_triplet_map` (loaded in about a
     second), or an instance-map folder (``instances/<class>.txt`` and, with ``config.use_rsn``,
@@ -192,6 +195,9 @@ def open_triplet_map(
             descriptors (``top_k``, ``min_clique``, ``use_rsn``...), applied to either
             configuration; ``top_k`` is then fitted to the map
             (:func:`~jaxloc.m2loc.fit_config_to_map`).
+        query_capacities: padded scan sizes (:func:`~jaxloc.m2loc.query_capacity`) whose query
+            programs compile in the background while a folder is described
+            (:func:`~jaxloc.m2loc.prepare_queries`; with the compilation cache on).
 
     Raises:
         FileNotFoundError: no such file or folder, a missing class file.
@@ -206,6 +212,9 @@ def open_triplet_map(
     if not path.is_file():
         config = dataclasses.replace(config or m2loc_config(3), **replace)
         instances, normals = load_lidar_map(path, config.descriptor.classes, config.use_rsn)
+        if query_capacities and len(instances.points) >= 3:  # fewer: build_map refuses it
+            spec = triplet_map_spec(len(instances.points), config, normals)
+            prepare_queries(spec, query_capacities)
         kept = _kept_map_file(instances.points, instances.labels, normals, config)
         triplet_map = _load_kept_map(kept, config) if kept is not None else None
         if triplet_map is None:

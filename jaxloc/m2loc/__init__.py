@@ -87,9 +87,16 @@ from jaxloc.m2loc._localization import (
     PaddedScan,
     localize_scan,
     pad_scan,
+    prepare_queries,
     query_capacity,
 )
-from jaxloc.m2loc._map import SmallMapWarning, TripletMap, build_map, fit_config_to_map
+from jaxloc.m2loc._map import (
+    SmallMapWarning,
+    TripletMap,
+    build_map,
+    fit_config_to_map,
+    triplet_map_spec,
+)
 from jaxloc.m2loc._matching import consistency_graph, match_descriptors
 from jaxloc.m2loc._query import QueryOutput, describe_query, register_query, verified_fraction
 from jaxloc.m2loc._registration import point_residuals, register, up_axis_prior, weighted_kabsch
@@ -170,6 +177,7 @@ __all__ = [
     "map_grid",
     "match_descriptors",
     "pad_scan",
+    "prepare_queries",
     "max_clique",
     "max_clique_exact",
     "max_clique_with_info",
@@ -180,6 +188,7 @@ __all__ = [
     "require_clique",
     "summarize_localization",
     "track_step",
+    "triplet_map_spec",
     "tripletloc_config",
     "unpack_ranked",
     "up_axis_prior",

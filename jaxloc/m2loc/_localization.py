@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import jax
 import numpy as np
 
-from jaxloc.compilation_cache import cached_call
+from jaxloc.compilation_cache import cached_call, prepare_call
 from jaxloc.m2loc._config import TripletConfig
 from jaxloc.m2loc._map import TripletMap, build_map, check_points_labels
 from jaxloc.m2loc._query import QueryOutput, describe_query, register_query
@@ -108,6 +109,33 @@ def pad_scan(
     classes = config.descriptor.classes
     points, labels = check_points_labels(scan_points, scan_labels, classes, "scan")
     return _padded(points, labels, config, capacity)
+
+
+def prepare_queries(triplet_map: TripletMap, capacities: Sequence[int]) -> None:
+    """Trace :func:`localize_scan`'s query programs for scans padded to each of ``capacities``
+    (:func:`query_capacity`) and compile them in a background thread, so that the first
+    ``localize_scan`` of such a scan finds them ready
+    (:func:`jaxloc.compilation_cache.prepare_call`; nothing without the compilation cache).
+
+    Args:
+        triplet_map: the map, or its shapes before it is described (:func:`triplet_map_spec`):
+            compiling while :func:`build_map` runs is the point.
+        capacities: padded scan sizes.
+    """
+    config = triplet_map.config
+    for capacity in capacities:
+        query = (
+            jax.ShapeDtypeStruct((capacity, 3), np.float32),
+            jax.ShapeDtypeStruct((capacity,), np.int32),
+            jax.ShapeDtypeStruct((capacity,), bool),
+        )
+        described = prepare_call("describe_query", describe_query, *query, config.descriptor)
+        if described is None:  # the cache is off
+            return
+        # The arguments of localize_scan's calls, so that the keys agree.
+        points, classes, mask = query
+        arguments = (triplet_map, points, classes, *described, mask)
+        prepare_call("register_query", register_query, *arguments)
 
 
 def invalid_result() -> LocalizationResult:

@@ -174,3 +174,37 @@ def build_map(
         config=config,
         grid=map_grid(centred, positions, config.verify_radius),
     )
+
+
+def triplet_map_spec(
+    num_vertices: int, config: TripletConfig, road_normals: RoadNormals | None = None
+) -> TripletMap:
+    """What :func:`build_map` of ``num_vertices`` vertices will return, before it is described: a
+    :class:`TripletMap` of ``jax.ShapeDtypeStruct`` leaves with the same static parts (``config``
+    fitted to the map, ``has_rsn``, the grid's cell), for compiling the query programs while the
+    map is described (:func:`~jaxloc.m2loc.prepare_queries`).
+    """
+    with warnings.catch_warnings():  # build_map warns about a clamped top_k itself
+        warnings.simplefilter("ignore", SmallMapWarning)
+        config = fit_config_to_map(config, num_vertices)
+    cells = 0 if road_normals is None else len(road_normals.xy)
+    rows = max(cells, 1)  # one dummy cell without normals
+
+    def shape(*dims: int, dtype=np.float32) -> jax.ShapeDtypeStruct:
+        return jax.ShapeDtypeStruct(dims, dtype)
+
+    points, classes = shape(num_vertices, 3), shape(num_vertices, dtype=np.int32)
+    scales = config.descriptor.num_scales
+    return TripletMap(
+        points=points,
+        classes=classes,
+        descriptors=tuple(shape(num_vertices, config.descriptor.dim) for _ in range(scales)),
+        valid=shape(scales, num_vertices, dtype=bool),
+        origin=shape(3),
+        rsn_xy=shape(rows, 2),
+        rsn_normals=shape(rows, 3),
+        rsn_sigma=shape(rows),
+        has_rsn=cells > 0,
+        config=config,
+        grid=jax.eval_shape(map_grid, points, classes, config.verify_radius),
+    )
