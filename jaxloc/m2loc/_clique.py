@@ -40,6 +40,11 @@ from jax import Array
 _WORD = 32
 
 
+def padded_size(n: int) -> int:
+    """Vertices of an ``n``-vertex graph padded to whole 32-bit words (the bitset solvers' size)."""
+    return -(-n // _WORD) * _WORD
+
+
 def _top_k(counts: Array, k: int) -> tuple[Array, Array]:
     """``lax.top_k`` of int32 counts (< 2**24) ranked as float32, which XLA:CPU sorts several
     times faster than int32 (ties keep the lower index first either way)."""
@@ -141,7 +146,7 @@ def greedy_cliques(adjacency: Array, valid: Array) -> tuple[Array, Array]:
         >= n are padding). Unpack a row with :func:`unpack_ranked`.
     """
     n = adjacency.shape[0]
-    n_pad = -(-n // _WORD) * _WORD
+    n_pad = padded_size(n)
     a = jnp.pad(adjacency, ((0, n_pad - n), (0, n_pad - n)))
     valid = jnp.pad(valid, (0, n_pad - n))
     degree = jnp.where(valid, jnp.sum(a, axis=1, dtype=jnp.int32), -1)
@@ -291,7 +296,7 @@ def max_clique_symmetric(
     """:func:`max_clique_with_info` for an adjacency that is already symmetric, masked by
     ``valid`` and False on the diagonal (e.g. from :func:`consistency_graph`); traceable."""
     n = adjacency.shape[0]
-    n_pad = -(-n // _WORD) * _WORD
+    n_pad = padded_size(n)
     a = jnp.pad(adjacency, ((0, n_pad - n), (0, n_pad - n)))
     valid = jnp.pad(valid, (0, n_pad - n))
     bits = _pack(a)

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from jaxloc.m2loc._clique import _popcount, greedy_cliques, unpack_ranked
+from jaxloc.m2loc._clique import _popcount, greedy_cliques, padded_size, unpack_ranked
 
 #: Odd 32-bit multipliers of the clique hash (fixed: results must not depend on a key).
 _HASH_SEED = 0x9E3779B9
@@ -143,6 +143,12 @@ def closed_form_poses(masks: Array, query_xyz: Array, map_xyz: Array) -> Array:
     return jnp.where(usable[:, None, None], poses, jnp.eye(4, dtype=query_xyz.dtype))
 
 
+def hypothesis_slots(num_associations: int, count: int) -> int:
+    """H, the hypotheses :func:`verified_hypotheses` returns for ``num_associations`` (A) and
+    ``count`` (one greedy clique per padded vertex at most)."""
+    return min(count, padded_size(num_associations))
+
+
 def verified_hypotheses(
     adjacency: Array,
     valid: Array,
@@ -176,7 +182,7 @@ def verified_hypotheses(
         .set(hashes[by_hash[1:]] == hashes[by_hash[:-1]])
     )
     score = jnp.where(repeated | (sizes < 3), -1, sizes).astype(jnp.float32)
-    top_score, chosen = jax.lax.top_k(score, min(count, score.shape[0]))
+    top_score, chosen = jax.lax.top_k(score, hypothesis_slots(n, count))
     masks = jax.vmap(lambda clique: unpack_ranked(clique, order, n))(cliques[chosen])
     poses = closed_form_poses(masks, query_xyz, map_xyz)
     fractions = jnp.where(top_score >= 3, jax.vmap(verify)(poses), -1.0)

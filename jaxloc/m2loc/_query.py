@@ -37,6 +37,7 @@ from jaxloc.m2loc._descriptors import DescriptorConfig, describe_points
 from jaxloc.m2loc._hypotheses import (
     best_hypothesis,
     grid_verified_fraction,
+    hypothesis_slots,
     map_grid,
     verified_hypotheses,
 )
@@ -388,13 +389,8 @@ def register_query(
         jnp.eye(4, dtype=jnp.float32),
         jnp.float32(-1.0),
     )
-    checked = (
-        jax.tree.map(
-            lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(hypotheses_of, jnp.int32(0))[1:]
-        )
-        if searching_on
-        else ()
-    )
+    slots = hypothesis_slots(total, config.hypotheses)  # the hypotheses' (poses, fractions)
+    checked = (jnp.zeros((slots, 4, 4)), jnp.zeros(slots)) if searching_on else ()
     start = (jnp.int32(0), assoc_valid, jnp.int32(0), empty, checked, jnp.array(False))
     *_, best, checked, _ = jax.lax.while_loop(more, solve_step, start)
     clique, exact, scale, solved, matrix, fraction = best
