@@ -40,9 +40,10 @@ ENV_DIR = "JAXLOC_CACHE_DIR"
 ENV_OFF = "JAXLOC_NO_CACHE"
 #: Size bound of the cache folder in bytes (2 GiB); JAX evicts the least recently used entries.
 DEFAULT_MAX_BYTES = 2 * 1024**3
-#: In this process: the exported programs by key, the source digest ("source") and the folder
-#: :func:`enable_compilation_cache` turned on ("folder").
-_PROGRAMS: dict[str, object] = {}
+#: In this process: the exported programs by key, their compiled forms (or :func:`prepare_call`'s
+#: futures of them) by ("compiled", key), the source digest ("source"), the folder
+#: :func:`enable_compilation_cache` turned on ("folder") and the compiling thread ("compiler").
+_PROGRAMS: dict[object, object] = {}
 
 
 def cache_disabled() -> bool:

@@ -200,8 +200,8 @@ def _retraction(delta: Array) -> jaxlie.SE3:
     """The perturbation ``(SO3.exp(omega), t)`` of ``delta = (t, omega)`` (6,).
 
     An SO(3) x R^3 retraction: its first-order term is ``SE3.exp``'s, and without ``SE3.exp``'s V
-    matrix (and its small-angle branches) the solve's program is ~20 % smaller and compiles ~1 s
-    faster on the M2Loc query.
+    matrix (and its small-angle branches) the M2Loc query program is 15 % smaller (7645 -> 6464
+    StableHLO operations after inlining).
     """
     return jaxlie.SE3.from_rotation_and_translation(jaxlie.SO3.exp(delta[3:]), delta[:3])
 
@@ -252,13 +252,13 @@ def solve_pose(
     def pose_of(delta: Array) -> jaxlie.SE3:
         return T_init @ _retraction(delta)
 
-    def raw_blocks(T: jaxlie.SE3) -> Array:
-        return _blocks(residual_fn(T, args))
+    def raw_blocks(T: jaxlie.SE3, call_args: Any = args) -> Array:
+        return _blocks(residual_fn(T, call_args))
 
-    def prior_vector(T: jaxlie.SE3) -> Array:
+    def prior_vector(T: jaxlie.SE3, call_args: Any = args) -> Array:
         if prior_fn is None:
             return jnp.zeros((0,), dtype)
-        return jnp.ravel(prior_fn(T, args))
+        return jnp.ravel(prior_fn(T, call_args))
 
     # Everything traced that the residuals read is an explicit operand of the custom JVP (a
     # custom_jvp function must not close over values that are differentiated).
@@ -269,12 +269,11 @@ def solve_pose(
         block_weights, dynamic_part = operands
         start, call_args = eqx.combine(dynamic_part, static)
         T = start @ _retraction(delta)  # once: the residuals and the prior share it
-        blocks = _blocks(residual_fn(T, call_args))
+        blocks = raw_blocks(T, call_args)
         blocks = jnp.where(jnp.isfinite(blocks), blocks, 0.0)
         squared = jnp.sum(blocks * blocks, axis=-1)
         factor = robust_block_scale(squared, loss) * jnp.sqrt(block_weights)
-        prior = jnp.zeros((0,), dtype) if prior_fn is None else jnp.ravel(prior_fn(T, call_args))
-        return jnp.concatenate([jnp.ravel(blocks * factor[:, None]), prior])
+        return jnp.concatenate([jnp.ravel(blocks * factor[:, None]), prior_vector(T, call_args)])
 
     def robust_residuals(delta: Array, block_weights: Array) -> Array:
         return weighted_residuals(delta, (block_weights, dynamic))

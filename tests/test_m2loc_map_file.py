@@ -272,8 +272,11 @@ def test_query_programs_compile_while_the_folder_is_described(world, tmp_path, m
     monkeypatch.setattr(compilation_cache, "_compile", counted_compile)
     capacity = query_capacity(len(query.points), config)
     triplet_map = open_triplet_map(folder, config, query_capacities=(capacity,))
-    prepared = {k: v for k, v in compilation_cache._PROGRAMS.items() if k[0] == "compiled"}
-    query_programs = [k for k, v in prepared.items() if isinstance(v, Future)]
+    query_programs = [
+        key
+        for key, value in compilation_cache._PROGRAMS.items()
+        if isinstance(key, tuple) and isinstance(value, Future)
+    ]
     assert len(query_programs) == 2  # describe_query and register_query, handed to the thread
     exports, compiles = len(calls["export"]), calls["compile"]
     result = localize_scan(triplet_map, None, query.points, query.labels)

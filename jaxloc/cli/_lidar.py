@@ -159,7 +159,7 @@ def _first_query_capacity(recording, config, args: argparse.Namespace) -> tuple[
     to localize, or one that does not read (its error comes when it is localized)."""
     from jaxloc.m2loc import query_capacity
 
-    if recording is None or not len(recording) or args.track or drive_options(args)[0] > 1:
+    if recording is None or not len(recording) or args.track or args.accumulate > 1:
         return ()
     try:
         scan = recording.instances(0, config.descriptor.classes)
