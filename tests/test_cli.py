@@ -336,3 +336,30 @@ def test_bench_filter_tiny(capsys):
     assert code == 0, err
     assert "32 particles x 112 rays" in out  # 14 x 8 pixels at stride 8
     assert numbers_after(r"(\d+\.\d+) s/frame wall", out) > 0
+
+
+def test_the_first_scans_query_programs_are_prepared_for_plain_runs(map_dir, queries, tmp_path):
+    """localize-lidar hands the first scan's capacity to open_triplet_map (its query programs
+    then compile while the map is described) only where that scan is localized alone."""
+    from jaxloc.cli import build_parser
+    from jaxloc.cli._lidar import _first_query_capacity, triplet_config
+    from jaxloc.io import open_lidar_recording
+
+    scan = write_centroids(tmp_path / "scan.txt", queries[0])
+    tiny = tmp_path / "tiny.txt"
+    tiny.write_text("15 1 2 3\n17 4 5 6\n")
+    poses = write_poses(tmp_path / "odometry.txt", [np.eye(4)])
+
+    def capacity(*options, scans=(scan,)):
+        argv = ["localize-lidar", str(map_dir), *map(str, scans), *options]
+        args = build_parser().parse_args(argv)
+        recording = open_lidar_recording(list(scans))
+        return _first_query_capacity(recording, triplet_config(args), args)
+
+    assert capacity() == (32,)  # 24 instances
+    assert capacity("--track", "--odometry", str(poses)) == ()
+    assert capacity("--accumulate", "2", "--odometry", str(poses)) == ()
+    assert capacity(scans=(tiny,)) == ()  # too small to localize: no program runs
+    broken = tmp_path / "broken.txt"
+    broken.write_text("15 one two three\n")
+    assert capacity(scans=(broken,)) == ()  # its error comes where it is localized
