@@ -142,11 +142,13 @@ def test_map_path_equals_points_path():
     config = DescriptorConfig(CLASSES, (10.0, 20.0), length_feature="ratio")
     sparse_points, sparse_classes = random_vertices(40, 3, extent=40.0)
     dense_points, dense_classes = random_vertices(40, 4, extent=3.0)
-    points = np.concatenate([sparse_points, dense_points])
-    classes = np.concatenate([sparse_classes, dense_classes])
+    denser_points, denser_classes = random_vertices(70, 5, extent=4.0)
+    denser_points += np.array([30.0, 30.0, 0.0], np.float32)
+    points = np.concatenate([sparse_points, dense_points, denser_points])
+    classes = np.concatenate([sparse_classes, dense_classes, denser_classes])
     counts = [c.size for c in map_neighbour_lists(points.astype(np.float64), 0.0, 10.0)]
     assert len({neighbour_capacity(c) for c in counts}) >= 3
-    dense, dense_valid = DESCRIBE(points, classes, np.ones(80, bool), config)
+    dense, dense_valid = DESCRIBE(points, classes, np.ones(len(points), bool), config)
     mapped, mapped_valid = describe_map(
         points.astype(np.float64) + 500.0, classes, config, pair_budget=2048
     )
