@@ -6,7 +6,8 @@ descriptors (:func:`describe_points`, :func:`describe_map`) -> per-class top-k m
 (:func:`max_clique`) with M2Loc's dynamic enhancement (and, for small scans, verified clique
 hypotheses: :func:`best_verified_clique`) -> Kabsch + robust refinement with the
 road-surface-normal prior (:func:`register`). User entry points: :func:`build_map` and
-:func:`localize_scan` (one scan), :func:`localize_scans` (a batch over devices),
+:func:`localize_scan` (one scan; :func:`prepare_queries` compiles its programs ahead, in the
+background), :func:`localize_scans` (a batch over devices),
 :func:`localize_window` (the fused instances of the last scans of a drive, :func:`fuse_scans`),
 :class:`Tracker` (a drive tracked near the odometry prediction, global localization as fallback)
 and :func:`localize_drive` (every scan of a drive or recording, alone, accumulated, tracked or
