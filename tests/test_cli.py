@@ -363,3 +363,6 @@ def test_the_first_scans_query_programs_are_prepared_for_plain_runs(map_dir, que
     broken = tmp_path / "broken.txt"
     broken.write_text("15 one two three\n")
     assert capacity(scans=(broken,)) == ()  # its error comes where it is localized
+    twice = tmp_path / "twice.txt"
+    twice.write_text(scan.read_text() + scan.read_text().splitlines()[0] + "\n")
+    assert capacity(scans=(twice,)) == ()  # a duplicate point: localize_scan refuses it

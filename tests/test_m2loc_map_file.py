@@ -232,8 +232,11 @@ def test_the_map_spec_is_what_build_map_returns(world, case):
         points, labels, config = points[:5], labels[:5], m2loc_config(1)
     with pytest.warns() if case == "small" else contextlib.nullcontext():
         built = build_map(points, labels, config, normals)
-    spec = triplet_map_spec(len(points), config, normals)
+    spec = triplet_map_spec(points, labels, config, normals)
     assert shapes_and_static(spec) == shapes_and_static(built)
+    twice = np.concatenate([points, points[:1]]), np.concatenate([labels, labels[:1]])
+    with pytest.raises(ValueError, match="duplicate"):  # what build_map refuses, it refuses
+        triplet_map_spec(*twice, config)
 
 
 def test_query_programs_compile_while_the_folder_is_described(world, tmp_path, monkeypatch):

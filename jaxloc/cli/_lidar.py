@@ -156,16 +156,18 @@ def describe_map(
 def _first_query_capacity(recording, config, args: argparse.Namespace) -> tuple[int, ...]:
     """The padded size of the first scan's query, for its programs to compile while the map is
     described; () for a drive that runs other programs (--accumulate, --track), a scan too small
-    to localize, or one that does not read (its error comes when it is localized)."""
-    from jaxloc.m2loc import query_capacity
+    to localize, or one that does not read or that localize_scan refuses (its error comes when
+    it is localized, and nothing was compiled for it)."""
+    from jaxloc.m2loc import pad_scan
 
     if recording is None or not len(recording) or args.track or args.accumulate > 1:
         return ()
     try:
         scan = recording.instances(0, config.descriptor.classes)
+        padded = pad_scan(scan.points, scan.labels, config)
     except (OSError, ValueError):
         return ()
-    return (query_capacity(len(scan.points), config),) if len(scan.points) >= 3 else ()
+    return (padded.points.shape[0],) if len(scan.points) >= 3 else ()
 
 
 def open_map(path: Path, args: argparse.Namespace, recording=None):

@@ -212,9 +212,13 @@ def open_triplet_map(
     if not path.is_file():
         config = dataclasses.replace(config or m2loc_config(3), **replace)
         instances, normals = load_lidar_map(path, config.descriptor.classes, config.use_rsn)
-        if query_capacities and len(instances.points) >= 3:  # fewer: build_map refuses it
-            spec = triplet_map_spec(len(instances.points), config, normals)
-            prepare_queries(spec, query_capacities)
+        if query_capacities:
+            try:
+                spec = triplet_map_spec(instances.points, instances.labels, config, normals)
+            except ValueError:  # a map build_map refuses: its error, below, and nothing compiled
+                spec = None
+            if spec is not None:
+                prepare_queries(spec, query_capacities)
         kept = _kept_map_file(instances.points, instances.labels, normals, config)
         triplet_map = _load_kept_map(kept, config) if kept is not None else None
         if triplet_map is None:

@@ -177,13 +177,23 @@ def build_map(
 
 
 def triplet_map_spec(
-    num_vertices: int, config: TripletConfig, road_normals: RoadNormals | None = None
+    map_points: np.ndarray,
+    map_labels: np.ndarray,
+    config: TripletConfig,
+    road_normals: RoadNormals | None = None,
 ) -> TripletMap:
-    """What :func:`build_map` of ``num_vertices`` vertices will return, before it is described: a
+    """What :func:`build_map` of the same arguments will return, before it describes the map: a
     :class:`TripletMap` of ``jax.ShapeDtypeStruct`` leaves with the same static parts (``config``
     fitted to the map, ``has_rsn``, the grid's cell), for compiling the query programs while the
     map is described (:func:`~jaxloc.m2loc.prepare_queries`).
+
+    Raises:
+        ValueError: as :func:`build_map` for a map it refuses (checked in milliseconds).
     """
+    classes = config.descriptor.classes
+    num_vertices = check_points_labels(map_points, map_labels, classes, "map")[0].shape[0]
+    if num_vertices < 3:
+        raise ValueError(f"a map needs at least 3 vertices, got {num_vertices}")
     with warnings.catch_warnings():  # build_map warns about a clamped top_k itself
         warnings.simplefilter("ignore", SmallMapWarning)
         config = fit_config_to_map(config, num_vertices)
