@@ -213,9 +213,9 @@ def shapes_and_static(triplet_map):
     the static parts (as jaxloc.compilation_cache keys them)."""
     import equinox as eqx
 
-    dynamic, static = eqx.partition(
-        triplet_map, lambda x: eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct)
-    )
+    from jaxloc.compilation_cache import _is_dynamic
+
+    dynamic, static = eqx.partition(triplet_map, _is_dynamic)
     leaves, treedef = jax.tree.flatten(dynamic)
     return str(treedef), [(tuple(x.shape), str(x.dtype)) for x in leaves], repr(static)
 
