@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
 
 from jaxloc.scene import SceneGraph
 
@@ -12,6 +11,8 @@ def floor_plan(scene: SceneGraph) -> list[tuple[np.ndarray, np.ndarray]]:
     """Object footprints: per real object, the convex hull of its triangles' x-y corners, as
     ((K, 2) polygon in metres, world frame; (3,) RGB in [0, 1]). Objects whose corners span no
     area in x-y (a wall seen from above) give their x-y segment as a 2-point polygon."""
+    from scipy.spatial import ConvexHull, QhullError  # here: ~0.3 s to import, for figures only
+
     triangles = np.asarray(scene.triangles)
     owner = np.asarray(scene.triangle_object)
     colors = np.asarray(scene.colors)

@@ -10,15 +10,17 @@ A :class:`SceneGraph` is an ``eqx.Module`` pytree of fixed-shape arrays. Its sha
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import equinox as eqx
 import jax
 import numpy as np
-import trimesh
 from jax import Array
 
 from jaxloc.raycasting.bvh import build_bvh
+
+if TYPE_CHECKING:  # imported where meshes are read: loading a saved map needs no trimesh (~0.4 s)
+    import trimesh
 
 #: Triangles with an area below this (m^2) are dropped at build time (they can never be hit).
 MIN_TRIANGLE_AREA = 1e-12
@@ -191,6 +193,8 @@ class SceneGraph(eqx.Module):
 
 
 def _objects_to_arrays(meshes, labels, embeddings, colors, edges):
+    import trimesh
+
     if isinstance(meshes, trimesh.Trimesh):
         raise TypeError("meshes must be a list of trimesh.Trimesh, one per object")
     meshes = list(meshes)

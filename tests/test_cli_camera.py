@@ -20,6 +20,7 @@ from _camera_fixtures import (
     write_matrix,
     write_scannet_scan,
 )
+from conftest import command_line_process
 
 from jaxloc.camera import Camera
 from jaxloc.cli import main
@@ -174,6 +175,19 @@ def test_localize_camera_end_to_end(built, export_run, capsys):
     assert f"localized: {sum(flags)} of {len(FRAMES)} frames" in out
     assert "last frame: " in out and "R@0.25m,10deg" in out
     assert "refined last frame: ok" in out and "T_world_cam =" in out
+
+
+@pytest.mark.slow
+def test_the_command_lines_fast_compilation_gives_the_same_poses(built, export_run):
+    """localize-camera in a process of its own (XLA's legacy fusion emitters, as a user's run)
+    gives the poses and verdicts of the run in this process (the library's default emitters)."""
+    map_path, seq, _ = built
+    report, _, _ = export_run
+    there = json.loads(
+        command_line_process(["localize-camera", map_path, seq, *LOCALIZE, "--json"])
+    )
+    assert there["localized"] == report["localized"]
+    np.testing.assert_allclose(there["poses"], report["poses"], atol=1e-5)
 
 
 @pytest.mark.slow

@@ -13,6 +13,9 @@ from pathlib import Path
 
 import pytest
 
+from jaxloc import compilation_cache
+from jaxloc.compilation_cache import FAST_COMPILATION_FLAG, prefer_fast_compilation
+
 ROOT = Path(__file__).resolve().parents[1]
 
 #: A process that enables the cache (unless JAXLOC_NO_CACHE), compiles two small programs and one
@@ -52,14 +55,17 @@ print(json.dumps({
 
 
 #: What the command line does before it imports jax.
-QUIET = "from jaxloc.compilation_cache import quiet_xla_log\nquiet_xla_log()\n"
+QUIET = (
+    "from jaxloc.compilation_cache import prefer_fast_compilation, quiet_xla_log\n"
+    "prefer_fast_compilation()\nquiet_xla_log()\n"
+)
 
 
 def run(folder: Path, *, disabled: bool = False, quiet: bool = False) -> tuple[dict, str]:
     env = {
         k: v
         for k, v in os.environ.items()
-        if not k.startswith(("JAX_COMPILATION", "JAXLOC_", "TF_CPP_MIN_LOG_LEVEL"))
+        if not k.startswith(("JAX_COMPILATION", "JAXLOC_", "TF_CPP_MIN_LOG_LEVEL", "XLA_FLAGS"))
     }
     if disabled:
         env["JAXLOC_NO_CACHE"] = "1"
@@ -141,20 +147,46 @@ def test_help_imports_no_jax():
 def test_the_command_line_quiets_the_xla_log_before_its_checks_import_jax():
     """The demo's option checks import JAX (SSIM's window); the log level must be set before
     that, or every cached program logs the spurious lines (seen in `jaxloc demo` before)."""
+    report = _demo_environment({})
+    assert report == {"log": "3", "xla_flags": FAST_COMPILATION_FLAG, "jax": True}
+
+
+def _demo_environment(extra: dict) -> dict:
+    """The log level and XLA flags a ``jaxloc demo`` command runs with (the command replaced by
+    a recorder, after the command line's set-up and checks), in an environment without either
+    plus ``extra``."""
     code = (
         "import json, os, sys\nimport jaxloc.cli as cli\nseen = {}\n"
-        "def record(name):\n"
-        "    def run(args):\n"
-        "        seen[name] = os.environ.get('TF_CPP_MIN_LOG_LEVEL')\n        return 0\n"
-        "    return run\n"
-        "cli._COMMANDS['demo'] = record('demo')\n"
+        "def record(args):\n"
+        "    seen.update(log=os.environ.get('TF_CPP_MIN_LOG_LEVEL'),\n"
+        "                xla_flags=os.environ.get('XLA_FLAGS'))\n    return 0\n"
+        "cli._COMMANDS['demo'] = record\n"
         "cli.main(['demo', '--width', '160', '--height', '120'])\n"
-        "print(json.dumps({'demo': seen['demo'], 'jax': 'jax' in sys.modules}))"
+        "print(json.dumps({**seen, 'jax': 'jax' in sys.modules}))"
     )
-    env = {k: v for k, v in os.environ.items() if k != "TF_CPP_MIN_LOG_LEVEL"}
+    env = {k: v for k, v in os.environ.items() if k not in ("TF_CPP_MIN_LOG_LEVEL", "XLA_FLAGS")}
     done = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env={**env, **extra}
     )
     assert done.returncode == 0, done.stderr[-2000:]
-    report = json.loads(done.stdout.strip().splitlines()[-1])
-    assert report == {"demo": "3", "jax": True}
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_the_command_line_keeps_the_users_xla_flags():
+    """A user's XLA_FLAGS are left as they are (the fast-compilation flag only where none are)."""
+    report = _demo_environment({"XLA_FLAGS": "--xla_cpu_enable_fast_math=false"})
+    assert report["xla_flags"] == "--xla_cpu_enable_fast_math=false"
+
+
+def test_fast_compilation_is_not_set_once_jax_is_imported_or_for_other_jaxlibs(monkeypatch):
+    """Once jax is in, XLA's flags may already be parsed: nothing changes. A jaxlib outside the
+    versions known to have the flag gets none (XLA aborts on an unknown flag)."""
+    import jax  # noqa: F401 - imported, as in any test process
+
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    assert not prefer_fast_compilation() and "XLA_FLAGS" not in os.environ
+    monkeypatch.delitem(sys.modules, "jax")
+    monkeypatch.setattr(compilation_cache, "FAST_COMPILATION_JAXLIB", ((0, 3), (0, 4)))
+    assert not prefer_fast_compilation() and "XLA_FLAGS" not in os.environ
+    monkeypatch.setattr(compilation_cache, "FAST_COMPILATION_JAXLIB", ((0, 0), (99, 0)))
+    assert prefer_fast_compilation() and os.environ["XLA_FLAGS"] == FAST_COMPILATION_FLAG

@@ -16,6 +16,7 @@ from jaxloc.m2loc import (
     consistency_graph,
     greedy_cliques,
     grid_verified_fraction,
+    host_map_grid,
     map_grid,
     unpack_ranked,
     verified_fraction,
@@ -95,6 +96,23 @@ def test_grid_verification_equals_brute_force_and_is_never_laxer():
         assert got == pytest.approx(want, abs=1e-6), trial
         small = float(verify(*args, grid, radius=1.5, discount=3, bucket=4))
         assert small <= got + 1e-6  # a full cell can only count fewer
+
+
+@pytest.mark.parametrize("cell", [1.5, 0.37, 40.0])
+def test_host_map_grid_equals_the_jitted_grid(cell):
+    rng = np.random.default_rng(5)
+    map_points = rng.uniform(-300, 300, (2000, 3)).astype(np.float32)
+    map_points[:50, :2] = np.round(map_points[:50, :2] / cell) * cell  # on cell boundaries
+    map_points[50:90] = map_points[90]  # one cell with many vertices: order of equal keys
+    map_classes = rng.integers(0, 5, 2000).astype(np.int32)
+    jitted = map_grid(jnp.asarray(map_points), jnp.asarray(map_classes), cell)
+    host = host_map_grid(map_points, map_classes, cell)
+    assert (host.cell, host.columns) == (jitted.cell, jitted.columns)
+    for name in ("keys", "points", "classes", "low"):
+        got, want = getattr(host, name), getattr(jitted, name)
+        assert (got.dtype, got.shape) == (want.dtype, want.shape), name
+        np.testing.assert_array_equal(np.asarray(got), np.asarray(want), err_msg=name)
+    assert np.all(np.diff(np.asarray(host.keys)) >= 0)
 
 
 def numpy_kabsch(source, target):

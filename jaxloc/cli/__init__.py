@@ -60,7 +60,7 @@ from jaxloc.cli._options import (
     seed,
     stride_list,
 )
-from jaxloc.compilation_cache import quiet_xla_log
+from jaxloc.compilation_cache import prefer_fast_compilation, quiet_xla_log
 
 __all__ = ["InputError", "build_parser", "check_args", "main"]
 
@@ -427,9 +427,10 @@ def main(argv: list[str] | None = None) -> int:
     name = _command_name(args)
 
     def checked_run() -> int:
+        # before any check imports JAX (the demo's strides need SSIM's window, in a module that
+        # imports JAX): once JAX is in, its C++ log level and XLA's flags are fixed
+        prefer_fast_compilation()
         if not args.no_cache and args.command != "cache":
-            # before any check imports JAX (the demo's strides need SSIM's window, in a module
-            # that imports JAX): once JAX is in, its C++ log level is fixed
             quiet_xla_log()
         check_args(args)
         _enable_cache(args)

@@ -34,8 +34,8 @@ from jaxloc.m2loc import (
     TripletMap,
     build_map,
     fit_config_to_map,
+    host_map_grid,
     m2loc_config,
-    map_grid,
     prepare_queries,
     triplet_map_spec,
 )
@@ -172,7 +172,7 @@ def load_triplet_map(path: str | os.PathLike) -> TripletMap:
     config = fit_config_to_map(config, content["points"].shape[0], stacklevel=2)
     # device_put, not jnp.asarray: no conversion program compiled per array shape
     arrays = {name: jax.device_put(content[name]) for name in _ARRAYS if name != "has_rsn"}
-    grid = map_grid(arrays["points"], arrays["classes"], config.verify_radius)
+    grid = host_map_grid(content["points"], content["classes"], config.verify_radius)
     return TripletMap(**arrays, has_rsn=bool(content["has_rsn"]), config=config, grid=grid)
 
 

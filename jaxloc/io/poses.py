@@ -28,7 +28,6 @@ from decimal import Decimal, InvalidOperation
 from typing import NamedTuple
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from jaxloc.io._atomic import write_text_atomic
 from jaxloc.io._rigid import rigid_mask
@@ -112,6 +111,8 @@ def _tum_pose(values: list[float], where: str) -> np.ndarray:
     norm = float(np.linalg.norm(quaternion))
     if abs(norm - 1.0) > QUATERNION_TOLERANCE:
         raise ValueError(f"{where}: quaternion (qx qy qz qw) has norm {norm:.6g}, not 1")
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial costs ~0.3 s to import
+
     pose = np.eye(4)
     pose[:3, :3] = Rotation.from_quat(quaternion / norm).as_matrix()  # scalar-last: x y z w
     pose[:3, 3] = values[:3]
@@ -262,6 +263,8 @@ def write_tum(
         times = [_number(t) for t in stamps]
     else:
         raise ValueError(f"{path}: timestamps must be integer ns or finite float seconds")
+    from scipy.spatial.transform import Rotation
+
     quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat().reshape(-1, 4)
     quaternions *= np.where(quaternions[:, 3:] < 0, -1.0, 1.0)
     lines = [

@@ -17,7 +17,6 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-import trimesh
 
 #: A file path: ``str`` or ``os.PathLike``.
 PathLike = str | os.PathLike
@@ -70,6 +69,8 @@ def read_json(path: Path) -> dict:
 def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict]:
     """Vertices (V, 3), faces (F, 3) or None, colours (V, 3) or None and the raw per-vertex
     properties (name -> (V,) array) of a PLY file, loaded unprocessed."""
+    import trimesh  # here: a camera recording's reader needs no trimesh (~0.4 s of imports)
+
     require_file(path)
     try:
         geometry = trimesh.load(path, process=False)

@@ -80,6 +80,7 @@ from jaxloc.m2loc._hypotheses import (
     best_verified_clique,
     closed_form_poses,
     grid_verified_fraction,
+    host_map_grid,
     map_grid,
     verified_hypotheses,
 )
@@ -169,6 +170,7 @@ __all__ = [
     "greedy_cliques",
     "grid_nearest_same_class",
     "grid_verified_fraction",
+    "host_map_grid",
     "localization_errors",
     "localize_drive",
     "localize_scan",

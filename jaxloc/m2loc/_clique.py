@@ -51,6 +51,19 @@ def _top_k(counts: Array, k: int) -> tuple[Array, Array]:
     return jax.lax.top_k(counts.astype(jnp.float32), k)
 
 
+def _first_index(where: Array) -> Array:
+    """Index of the first True of a non-empty (n,) bool (n when none): ``jnp.argmax(where)`` as
+    one plain min-reduction. XLA:CPU's legacy fusion emitters, which the command line uses
+    (:func:`jaxloc.compilation_cache.prefer_fast_compilation`), run argmax's paired value-index
+    reduction ~2x slower inside the greedy loops; this form is as fast with both emitters."""
+    return jnp.min(jnp.where(where, jnp.arange(where.shape[0]), where.shape[0]))
+
+
+def _first_max(values: Array) -> Array:
+    """``jnp.argmax`` of (n,) int32 values: the first index of the largest."""
+    return _first_index(values == jnp.max(values))
+
+
 def _symmetric(adjacency: Array, valid: Array | None) -> tuple[Array, Array]:
     n = adjacency.shape[0]
     valid = jnp.ones(n, bool) if valid is None else jnp.asarray(valid, bool)
@@ -72,7 +85,7 @@ def _greedy_from_seeds(adjacency: Array, valid: Array, degree: Array, num_seeds:
 
         def body(state):
             clique, candidates = state
-            v = jnp.argmax(jnp.where(candidates, degree, -1))
+            v = _first_max(jnp.where(candidates, degree, -1))
             return clique | (rows == v), candidates & adjacency[v]
 
         start = (rows == seed) & valid[seed], adjacency[seed] & valid[seed]
@@ -115,7 +128,7 @@ def _greedy_from_every_vertex(bits: Array, members: Array) -> Array:
         def body(state):
             clique, candidates = state
             score = jnp.where(_unpack(candidates), _popcount(bits & candidates[None, :]), -1)
-            v = jnp.argmax(score)
+            v = _first_max(score)
             return clique | (rows == v), candidates & bits[v]
 
         start = (rows == seed) & members[seed], jnp.where(members[seed], bits[seed], 0)
@@ -197,7 +210,7 @@ def _popcount(words: Array) -> Array:
 
 def _lowest_bit(words: Array) -> Array:
     """Index of the lowest set bit of a non-empty bitset (W,) uint32."""
-    w = jnp.argmax(words != 0)
+    w = _first_index(words != 0)
     word = words[w]
     lowest = word & (~word + jnp.uint32(1))
     return w * _WORD + (_WORD - 1 - jax.lax.clz(lowest).astype(jnp.int32))

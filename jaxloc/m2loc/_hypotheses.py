@@ -16,6 +16,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from jaxloc.m2loc._clique import _popcount, greedy_cliques, padded_size, unpack_ranked
@@ -53,17 +54,40 @@ class MapGrid(eqx.Module):
     columns: int = eqx.field(static=True)
 
 
+#: Cells per side of a :class:`MapGrid`. Keys are int32: cells beyond 46k per side (69 km at
+#: 1.5 m) fold together, which only adds candidates that the distance test then rejects.
+GRID_COLUMNS = 46000
+
+
+def _sorted_cells(xp, map_points, map_classes, cell: float) -> tuple:
+    """(keys, points, classes, low) of :class:`MapGrid` in the array namespace ``xp`` (numpy on
+    the host, jax.numpy when traced): the same float32 and int32 operations in both."""
+    low = xp.min(map_points[:, :2], axis=0) - xp.float32(cell)
+    index = xp.floor((map_points[:, :2] - low) / xp.float32(cell))
+    index = xp.clip(index, 0, GRID_COLUMNS - 1).astype(xp.int32)
+    keys = index[:, 0] * xp.int32(GRID_COLUMNS) + index[:, 1]
+    order = xp.argsort(keys, stable=True)
+    return keys[order], map_points[order], map_classes[order], low
+
+
 @functools.partial(jax.jit, static_argnames="cell")  # one program, not a dozen eager ones
 def map_grid(map_points: Array, map_classes: Array, cell: float) -> MapGrid:
-    """Sort the map's vertices into XY cells of side ``cell`` metres (jitted; static size)."""
-    low = jnp.min(map_points[:, :2], axis=0) - cell
-    # Keys are int32: cells beyond 46k per side (69 km at 1.5 m) fold together, which only adds
-    # candidates that the distance test then rejects.
-    columns = 46000
-    index = jnp.clip(jnp.floor((map_points[:, :2] - low) / cell), 0, columns - 1).astype(jnp.int32)
-    keys = index[:, 0] * columns + index[:, 1]
-    order = jnp.argsort(keys)
-    return MapGrid(keys[order], map_points[order], map_classes[order], low, cell, columns)
+    """Sort the map's vertices into XY cells of side ``cell`` metres (jitted; static size).
+
+    Args:
+        map_points: (Nm, 3) float32 vertices (metres); map_classes: (Nm,) int32.
+        cell: the cells' side (metres).
+    """
+    return MapGrid(*_sorted_cells(jnp, map_points, map_classes, cell), cell, GRID_COLUMNS)
+
+
+def host_map_grid(map_points: np.ndarray, map_classes: np.ndarray, cell: float) -> MapGrid:
+    """:func:`map_grid` of host arrays, computed by numpy (equal to it, array for array) and put
+    on the device: a map is built without compiling a program for its size."""
+    points = np.asarray(map_points, np.float32)
+    classes = np.asarray(map_classes, np.int32)
+    keys, points, classes, low = _sorted_cells(np, points, classes, cell)
+    return MapGrid(*jax.device_put((keys, points, classes, low)), cell, GRID_COLUMNS)
 
 
 def grid_verified_fraction(

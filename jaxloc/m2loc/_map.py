@@ -13,7 +13,7 @@ from jax import Array
 
 from jaxloc.m2loc._config import TripletConfig, m2loc_config
 from jaxloc.m2loc._descriptors import describe_map
-from jaxloc.m2loc._hypotheses import MapGrid, map_grid
+from jaxloc.m2loc._hypotheses import MapGrid, host_map_grid, map_grid
 from jaxloc.m2loc._road_normals import RoadNormals
 
 
@@ -159,11 +159,11 @@ def build_map(
     def device(array, dtype):
         return jax.device_put(np.asarray(array, dtype))
 
-    centred = device(points - origin, np.float32)
-    positions = device(positions, np.int32)
+    centred = np.asarray(points - origin, np.float32)
+    positions = np.asarray(positions, np.int32)
     return TripletMap(
-        points=centred,
-        classes=positions,
+        points=jax.device_put(centred),
+        classes=jax.device_put(positions),
         descriptors=tuple(device(d, np.float32) for d in descriptors),
         valid=device(valid, bool),
         origin=device(origin, np.float32),
@@ -172,7 +172,7 @@ def build_map(
         rsn_sigma=device(np.maximum(sigma, 1e-4), np.float32),
         has_rsn=has_rsn,
         config=config,
-        grid=map_grid(centred, positions, config.verify_radius),
+        grid=host_map_grid(centred, positions, config.verify_radius),
     )
 
 
