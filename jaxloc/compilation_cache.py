@@ -18,7 +18,7 @@ program is compiled instead. Beside JAX's entries the folder keeps jaxloc's trac
 (``programs/``, :func:`cached_call`) and described map folders (``maps/``, :func:`cache_entry`);
 those are not counted in the size bound, and ``jaxloc cache --clear`` removes them too.
 
-The command line also compiles faster, with XLA:CPU's legacy fusion emitters
+The SG2Loc commands also compile faster, with XLA:CPU's legacy fusion emitters
 (:func:`prefer_fast_compilation`).
 
 On some x86 CPUs (AMD Zen 4 here; Cascade Lake in jax-ml/jax#38445) jaxlib 0.9-0.10 logs two
@@ -78,16 +78,19 @@ def prefer_fast_compilation() -> bool:
     """Compile with XLA:CPU's legacy fusion emitters in this process (``XLA_FLAGS`` =
     :data:`FAST_COMPILATION_FLAG`), where that can still take effect (jax not imported yet), the
     user has not set ``XLA_FLAGS`` and the installed jaxlib is one of
-    :data:`FAST_COMPILATION_JAXLIB`. The command line calls it first thing.
+    :data:`FAST_COMPILATION_JAXLIB`. The SG2Loc commands (``localize-camera``, ``demo``) call
+    it first thing.
 
-    Why: XLA:CPU compiles jaxloc's programs 20-40 % faster with them (the M2Loc query program
-    4.0 -> 2.4 s, an SG2Loc filter round 3.2 -> 2.6 s) and runs them as fast (the greedy clique
-    loops avoid ``argmax``, which these emitters run ~2x slower); benchmarks/results/
-    startup_cpu.md. Not the default: the two emitters contract some fused float32 multiply-adds
-    differently, so results can differ in the last bits (the M2Loc query's and the SG2Loc
-    rounds' were bit-identical in our comparisons; the JAX ray-triangle kernel's ``t`` moved by
-    up to 5e-5, relative, on 9 % of random rays). In a notebook or script, call it before
-    importing jax, or set the flag yourself. Returns whether it did.
+    Why: XLA:CPU compiles jaxloc's programs 20-40 % faster with them (an SG2Loc filter round
+    3.2 -> 2.6 s, the single-scale M2Loc query 4.0 -> 2.4 s). The filter rounds run as fast;
+    the M2Loc query with three scales runs 20-30 % slower (paired reductions such as ``argmax``
+    run ~2x slower with these emitters; the greedy clique loops avoid it), so the LiDAR commands
+    do not use them (benchmarks/results/startup_cpu.md). Not the default either: the two
+    emitters contract some fused float32 multiply-adds differently, so results can differ in the
+    last bits (the SG2Loc rounds' and the M2Loc query's outputs were bit-identical in our
+    comparisons; the JAX ray-triangle kernel's ``t`` moved by up to 5e-5, relative, on 9 % of
+    random rays). In a notebook or script, call it before importing jax, or set the flag
+    yourself. Returns whether it did.
     """
     if "jax" in sys.modules or "XLA_FLAGS" in os.environ:
         return False

@@ -13,8 +13,6 @@ from __future__ import annotations
 import functools
 import importlib.util
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import jax
@@ -400,20 +398,3 @@ def rot_x(a):
 
 
 BODY_CAM = np.column_stack([[0, -1, 0], [0, 0, -1], [1, 0, 0]]).astype(float)
-
-
-# ----------------------------------------------------------------------------- command line
-
-
-def command_line_process(argv: list) -> str:
-    """stdout of ``python -m jaxloc.cli ARGV`` in a fresh process, which sets itself up as a
-    user's would (XLA's legacy fusion emitters, ``prefer_fast_compilation``; no cache): the
-    in-process tests run on the library's default emitters."""
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "TF_CPP_MIN_LOG_LEVEL")}
-    env["JAXLOC_NO_CACHE"] = "1"
-    done = subprocess.run(
-        [sys.executable, "-m", "jaxloc.cli", *map(str, argv)],
-        capture_output=True, text=True, env=env, timeout=300,
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
-    return done.stdout

@@ -15,7 +15,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import command_line_process
 
 from jaxloc.cli import main
 from jaxloc.io import load_semantickitti_scan
@@ -206,18 +205,6 @@ def test_localize_lidar_real_map_and_scan(capsys):
     np.testing.assert_array_equal(pose[3], [0, 0, 0, 1])
     assert isinstance(record["valid"], bool) and record["clique_size"] >= 0
     assert record["descriptor_ms"] > 0 and record["match_ms"] > 0
-
-
-def test_the_command_lines_fast_compilation_gives_the_same_localization(capsys):
-    """The real scan in a process of its own (legacy fusion emitters) and in this one (default
-    emitters): the same verdict and clique, the same pose to float32 rounding."""
-    argv = ["localize-lidar", REAL_MAP, REAL_SCAN, "--json", *CONFIG_ARGS]
-    code, out, err = run(argv, capsys)
-    assert code == 0, err
-    here = json.loads(out)["scans"][0]
-    there = json.loads(command_line_process(argv))["scans"][0]
-    assert (there["valid"], there["clique_size"]) == (here["valid"], here["clique_size"])
-    np.testing.assert_allclose(there["T_map_scan"], here["T_map_scan"], atol=1e-5)
 
 
 # ----------------------------------------------------------------------------- errors

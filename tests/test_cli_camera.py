@@ -7,8 +7,11 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
 import re
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -20,7 +23,6 @@ from _camera_fixtures import (
     write_matrix,
     write_scannet_scan,
 )
-from conftest import command_line_process
 
 from jaxloc.camera import Camera
 from jaxloc.cli import main
@@ -175,6 +177,20 @@ def test_localize_camera_end_to_end(built, export_run, capsys):
     assert f"localized: {sum(flags)} of {len(FRAMES)} frames" in out
     assert "last frame: " in out and "R@0.25m,10deg" in out
     assert "refined last frame: ok" in out and "T_world_cam =" in out
+
+
+def command_line_process(argv: list) -> str:
+    """stdout of ``python -m jaxloc.cli ARGV`` in a fresh process, which sets itself up as a
+    user's would (XLA's legacy fusion emitters, ``prefer_fast_compilation``; no cache): the
+    in-process tests run on the library's default emitters."""
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "TF_CPP_MIN_LOG_LEVEL")}
+    env["JAXLOC_NO_CACHE"] = "1"
+    done = subprocess.run(
+        [sys.executable, "-m", "jaxloc.cli", *map(str, argv)],
+        capture_output=True, text=True, env=env, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done.stdout
 
 
 @pytest.mark.slow

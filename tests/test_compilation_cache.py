@@ -147,21 +147,21 @@ def test_help_imports_no_jax():
 def test_the_command_line_quiets_the_xla_log_before_its_checks_import_jax():
     """The demo's option checks import JAX (SSIM's window); the log level must be set before
     that, or every cached program logs the spurious lines (seen in `jaxloc demo` before)."""
-    report = _demo_environment({})
+    report = _command_environment(["demo", "--width", "160", "--height", "120"], {})
     assert report == {"log": "3", "xla_flags": FAST_COMPILATION_FLAG, "jax": True}
 
 
-def _demo_environment(extra: dict) -> dict:
-    """The log level and XLA flags a ``jaxloc demo`` command runs with (the command replaced by
-    a recorder, after the command line's set-up and checks), in an environment without either
+def _command_environment(argv: list[str], extra: dict) -> dict:
+    """The log level and XLA flags the command ``argv`` runs with (the command replaced by a
+    recorder, after the command line's set-up and checks), in an environment without either
     plus ``extra``."""
     code = (
         "import json, os, sys\nimport jaxloc.cli as cli\nseen = {}\n"
         "def record(args):\n"
         "    seen.update(log=os.environ.get('TF_CPP_MIN_LOG_LEVEL'),\n"
         "                xla_flags=os.environ.get('XLA_FLAGS'))\n    return 0\n"
-        "cli._COMMANDS['demo'] = record\n"
-        "cli.main(['demo', '--width', '160', '--height', '120'])\n"
+        f"cli._COMMANDS[{argv[0]!r}] = record\n"
+        f"cli.main({argv!r})\n"
         "print(json.dumps({**seen, 'jax': 'jax' in sys.modules}))"
     )
     env = {k: v for k, v in os.environ.items() if k not in ("TF_CPP_MIN_LOG_LEVEL", "XLA_FLAGS")}
@@ -172,10 +172,14 @@ def _demo_environment(extra: dict) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def test_the_command_line_keeps_the_users_xla_flags():
-    """A user's XLA_FLAGS are left as they are (the fast-compilation flag only where none are)."""
-    report = _demo_environment({"XLA_FLAGS": "--xla_cpu_enable_fast_math=false"})
-    assert report["xla_flags"] == "--xla_cpu_enable_fast_math=false"
+def test_fast_compilation_for_the_camera_commands_only_and_never_over_the_users_flags():
+    """localize-camera compiles with the legacy emitters, localize-lidar keeps XLA's defaults
+    (its three-scale query runs slower with them), and a user's XLA_FLAGS are left as they are."""
+    camera = ["localize-camera", "map.npz", "seq"]
+    assert _command_environment(camera, {})["xla_flags"] == FAST_COMPILATION_FLAG
+    assert _command_environment(["localize-lidar", "map", "scan"], {})["xla_flags"] is None
+    own = {"XLA_FLAGS": "--xla_cpu_enable_fast_math=false"}
+    assert _command_environment(camera, own)["xla_flags"] == own["XLA_FLAGS"]
 
 
 def test_fast_compilation_is_not_set_once_jax_is_imported_or_for_other_jaxlibs(monkeypatch):
