@@ -43,6 +43,12 @@ def union_seconds(intervals: list[tuple[float, float]]) -> float:
 
 def main() -> None:
     out, argv = sys.argv[1], sys.argv[sys.argv.index("--") + 1 :]
+    # the command line's own set-up before JAX is imported (here, to register the listeners)
+    from jaxloc.cli import FAST_COMPILATION_COMMANDS
+    from jaxloc.compilation_cache import prefer_fast_compilation
+
+    if argv and argv[0] in FAST_COMPILATION_COMMANDS:
+        prefer_fast_compilation()
     import jax
 
     intervals: dict[str, list[tuple[float, float]]] = {kind: [] for kind in EVENTS.values()}
