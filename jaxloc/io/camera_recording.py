@@ -67,7 +67,8 @@ def open_camera_recording(
         format: "scannet-export", "sens" or "3rscan" (default: detected).
         map_file: the scene-graph map (:func:`~jaxloc.io.save_scene`): embedding files must have
             its dimension, and label images become embeddings with its class embeddings.
-        width, height: the working size (default the images'; one alone keeps the aspect).
+        width: the working width, px (default the images'; given alone, the aspect is kept).
+        height: the working height, px (likewise).
         embeddings_dir: per-frame ``N.npy`` patch embeddings (default ``embeddings/``).
         labels_dir: per-frame label images ``N.png``, used without an embeddings folder.
         label_table: a ScanNet label table (``.tsv``) mapping the images' raw ids to classes
@@ -80,7 +81,8 @@ def open_camera_recording(
         odometry: a camera-to-odometry pose file for the ego-motion and tilt (default
             ``odometry.txt`` beside the frames, when present).
         step: every ``step``-th frame; max_frames: at most this many frames.
-        use_depth, use_rgb: read the depth and colour images into the query.
+        use_depth: read the depth images into the query.
+        use_rgb: read the colour images into the query.
 
     Returns:
         A :class:`~jaxloc.io.CameraRecording`.

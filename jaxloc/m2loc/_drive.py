@@ -171,8 +171,9 @@ def drive_window(
     """The fused window of scan ``end`` of a drive (its query under ``accumulate``).
 
     Args:
-        points, labels: per scan of the drive, oldest first, its instance centroids (M_i, 3)
-            (scan frame, metres) and (M_i,) class ids (at least the scans up to ``end``).
+        points: per scan of the drive, oldest first, its instance centroids (M_i, 3) (scan
+            frame, metres), at least the scans up to ``end``.
+        labels: per scan, the centroids' (M_i,) class ids.
         odometry: (S, 4, 4) pose of each scan in one fixed frame (``T_odom_scan``; only the
             relative poses matter).
         end: the window's newest scan.
