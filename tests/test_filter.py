@@ -25,7 +25,7 @@ from jaxloc import Sequence
 from jaxloc.camera import stride_grid
 from jaxloc.geometry import compose_yaw, ego_motion, wrap_angle
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc import SG2LocConfig, SG2LocResult, carry_back, localize
+from jaxloc.sg2loc import SG2LocConfig, SG2LocResult, carry_back, localization, localize
 from jaxloc.sg2loc.filter import Frame, Region, StepConfig, frames_on_grid, run_pass, step
 from jaxloc.sg2loc.particles import ParticleState, init_region
 from jaxloc.sg2loc.resampling import KLDConfig
@@ -359,9 +359,38 @@ def test_step_with_all_invalid_depth(after_first, frames, scene, step_config):
 # ----------------------------------------------------------------------------- localize
 
 
+#: Traces of localize's per-frame programs during the ``located`` fixture's call.
+LOCATED_TRACES: dict[str, int] = {}
+
+
 @pytest.fixture(scope="module")
 def located(episode, scene) -> SG2LocResult:
-    return localize(jax.random.key(LOCALIZE_KEY), scene, episode.sequence, LOCALIZE_CONFIG)
+    """With a progress bar: the frame-by-frame programs (the tests below compare the scan)."""
+    before = dict(localization.TRACE_COUNTS)
+    key = jax.random.key(LOCALIZE_KEY)
+    result = localize(key, scene, episode.sequence, LOCALIZE_CONFIG, progress=True)
+    LOCATED_TRACES.update({k: localization.TRACE_COUNTS[k] - before[k] for k in before})
+    return result
+
+
+def test_localize_compiles_the_prediction_and_the_update_once_for_all_rounds(located):
+    """Frame by frame, only the scoring depends on a round's ray grid: the two rounds (strides 10
+    and 8) trace it twice, the prediction and the update once (no other test of this module ran
+    these programs with these shapes before the fixture)."""
+    assert LOCATED_TRACES == {"predict": 1, "score": 2, "update": 1}
+
+
+def test_localize_with_and_without_a_progress_bar_agree_bit_for_bit(located, episode, scene):
+    """The progress bar's three programs per frame and the scan's one program per round."""
+    key = jax.random.key(LOCALIZE_KEY)
+    scanned = localize(key, scene, episode.sequence, LOCALIZE_CONFIG, progress=False)
+    assert_bitwise_equal(
+        (scanned.poses, scanned.round_mle, scanned.num_particles, scanned.particles),
+        (located.poses, located.round_mle, located.num_particles, located.particles),
+    )
+    assert_bitwise_equal(
+        (scanned.info, scanned.particle_weights), (located.info, located.particle_weights)
+    )
 
 
 @pytest.mark.slow
@@ -412,7 +441,11 @@ def test_localize_result_shapes(located, episode):
 
 @pytest.mark.slow
 def test_localize_is_deterministic_for_a_key(located, episode, scene):
-    again = localize(jax.random.key(LOCALIZE_KEY), scene, episode.sequence, LOCALIZE_CONFIG)
+    """... and a second call traces nothing (no recompilation per call, round or frame)."""
+    before = dict(localization.TRACE_COUNTS)
+    key = jax.random.key(LOCALIZE_KEY)
+    again = localize(key, scene, episode.sequence, LOCALIZE_CONFIG, progress=True)
+    assert localization.TRACE_COUNTS == before
     assert_bitwise_equal(
         (again.poses, again.round_mle, again.num_particles, again.particles, again.info),
         (located.poses, located.round_mle, located.num_particles, located.particles, located.info),

@@ -4,7 +4,9 @@
 padded :class:`~jaxloc.sg2loc.particles.ParticleState`: prediction through the ego-motion (eq. 1),
 rendering of the scene graph on the configured ray grid, the semantic / depth / SSIM scores and
 the combined likelihood (eq. 2) in log space, the Bayes update, the estimates (MLE, weighted mean),
-KLD-sampling resampling into the padded buffer and optional random-particle injection.
+KLD-sampling resampling into the padded buffer and optional random-particle injection. Its parts
+are public too: :func:`predict_step`, :func:`score_active` (the only part that reads the ray grid)
+and :func:`update_step` (with :class:`UpdateConfig`, the grid-free part of :class:`StepConfig`).
 
 Everything that varies per frame is a traced :class:`Frame`; the map, the particle capacity, the
 ray grid and the score variants fix the compiled shapes, so a new frame, a new map of the same
@@ -131,6 +133,19 @@ class StepConfig(eqx.Module):
                 f"{SSIM_WINDOW} rays, but this one is {h} x {w} (image {self.camera.width} x "
                 f"{self.camera.height}): use a smaller stride or turn the colour score off"
             )
+
+    @property
+    def update(self) -> UpdateConfig:
+        """The fields :func:`update_step` reads."""
+        return UpdateConfig(
+            self.observation,
+            self.kld,
+            self.region,
+            self.inject_count,
+            self.inject_every,
+            self.heights,
+            self.verdict,
+        )
 
     def chunk_size(self, capacity: int) -> int:
         """Particles per chunk for a buffer of ``capacity`` slots (static)."""
@@ -335,22 +350,54 @@ def _score_shard(
     )
 
 
-def step(
-    key: Array, state: ParticleState, frame: Frame, scene: SceneGraph, config: StepConfig
-) -> tuple[ParticleState, StepInfo]:
-    """One SG2Loc filter step: predict, render, score, weight, estimate, resample, inject.
+def predict_step(
+    key: Array,
+    state: ParticleState,
+    frame_index: Array,
+    motion: Array,
+    sigma_trans: Array,
+    sigma_rot: Array,
+) -> tuple[ParticleState, Array]:
+    """The prediction of :func:`step`: ``(particles moved by the ego-motion, motion_valid)``.
 
-    The first frame (``frame.index == 0``) is not moved: its particles are the initial set. A
-    non-finite ego-motion counts as zero motion and is flagged in ``info.motion_valid``.
+    Frame 0 (``frame_index == 0``) is not moved: its particles are the initial set. A non-finite
+    ``motion`` (4,) counts as zero motion (``motion_valid`` False). ``key`` is the step's key.
     """
-    key_motion, key_resample, key_inject = jax.random.split(key, 3)
-    motion_valid = jnp.all(jnp.isfinite(frame.motion))
-    motion = jnp.where(motion_valid, frame.motion, 0.0)
-    moved = predict(key_motion, state, motion, config.sigma_trans, config.sigma_rot)
-    state = jax.tree.map(lambda a, b: jnp.where(frame.index > 0, a, b), moved, state)
+    key_motion, _, _ = jax.random.split(key, 3)
+    motion_valid = jnp.all(jnp.isfinite(motion))
+    motion = jnp.where(motion_valid, motion, 0.0)
+    moved = predict(key_motion, state, motion, sigma_trans, sigma_rot)
+    state = jax.tree.map(lambda a, b: jnp.where(frame_index > 0, a, b), moved, state)
+    return state, motion_valid
 
-    match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
-    scores = score_active(state, frame, scene, config, match)
+
+class UpdateConfig(eqx.Module):
+    """The part of :class:`StepConfig` that :func:`update_step` reads: no camera, no ray grid,
+    so one compiled update serves every ray grid (every coarse-to-fine round). Fields as in
+    :class:`StepConfig`."""
+
+    observation: ObservationConfig
+    kld: KLDConfig
+    region: Region
+    inject_count: Array
+    inject_every: int = eqx.field(static=True)
+    heights: Array
+    verdict: VerdictConfig
+
+
+def update_step(
+    key: Array,
+    state: ParticleState,
+    scores: Scores,
+    match: PatchMatch,
+    frame_index: Array,
+    motion_valid: Array,
+    config: UpdateConfig,
+) -> tuple[ParticleState, StepInfo]:
+    """The rest of :func:`step` after scoring: Bayes update, estimates, verdict, KLD resampling,
+    injection. ``key`` is the step's key; ``scores`` (N,) those of ``state``'s particles
+    (:func:`score_active`); ``match`` the frame's patch match."""
+    _, key_resample, key_inject = jax.random.split(key, 3)
     log_likelihood = jnp.where(state.active, scores.log_likelihood, -jnp.inf)
     state, degenerate = update_weights(state, log_likelihood)
     best_pose, best = mle(state)
@@ -360,7 +407,7 @@ def step(
 
     weighted = state
     state, kld_info = kld_resample(key_resample, state, config.kld)
-    inject_now = (frame.index > 0) & (frame.index % config.inject_every == 0)
+    inject_now = (frame_index > 0) & (frame_index % config.inject_every == 0)
     count = jnp.where(inject_now, config.inject_count, 0)
     region = config.region
     state = inject_uniform(
@@ -382,6 +429,25 @@ def step(
         verdict=verdict,
     )
     return state, info
+
+
+def step(
+    key: Array, state: ParticleState, frame: Frame, scene: SceneGraph, config: StepConfig
+) -> tuple[ParticleState, StepInfo]:
+    """One SG2Loc filter step: predict, render, score, weight, estimate, resample, inject.
+
+    It is :func:`predict_step`, :func:`~jaxloc.sg2loc.scores.match_patches`,
+    :func:`score_active` and :func:`update_step` in turn (:func:`jaxloc.sg2loc.localize` runs
+    them as separate programs, so that only the scoring compiles per ray grid). The first frame
+    (``frame.index == 0``) is not moved: its particles are the initial set. A non-finite
+    ego-motion counts as zero motion and is flagged in ``info.motion_valid``.
+    """
+    state, motion_valid = predict_step(
+        key, state, frame.index, frame.motion, config.sigma_trans, config.sigma_rot
+    )
+    match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
+    scores = score_active(state, frame, scene, config, match)
+    return update_step(key, state, scores, match, frame.index, motion_valid, config.update)
 
 
 def run_pass(

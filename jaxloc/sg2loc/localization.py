@@ -5,6 +5,13 @@ particles over the map's floor (or a given region) and casts every ``strides[0]`
 later round carries the previous round's last-frame MLE back to the first frame through the
 ego-motion, re-initialises the particles in a box around it (half-widths ``box_half_widths``) and
 casts a denser ray grid. The paper's defaults are strides 20, 8, 4 and boxes of 1.6^3 then 0.8^3 m.
+
+A round is one compiled ``lax.scan`` of :func:`~jaxloc.sg2loc.filter.step` over the frames
+(:func:`~jaxloc.sg2loc.filter.run_pass`). With a progress bar, each frame instead runs as three
+compiled programs (prediction, scoring, update; together the step): only the scoring depends on
+the round's ray grid, so the other two compile once for all rounds. Same results, bit for bit;
+the scan runs faster (one execution per round, not three per frame), the frame-by-frame path
+compiles less (the first run of three rounds: ~5 s less on 2 CPU cores).
 """
 
 from __future__ import annotations
@@ -26,18 +33,19 @@ from jaxloc.raycasting.engines import check_engine_name
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc._convert import as_float32
 from jaxloc.sg2loc.filter import (
-    Frame,
     Region,
     StepConfig,
     StepInfo,
     check_particle_chunk,
     frames_on_grid,
+    predict_step,
     run_pass,
-    step,
+    score_active,
+    update_step,
 )
 from jaxloc.sg2loc.particles import DEFAULT_BOX_YAW_HALF_RANGE, PAPER_HEIGHTS, init_box, init_region
 from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.scores import ObservationConfig
+from jaxloc.sg2loc.scores import ObservationConfig, match_patches
 from jaxloc.sg2loc.sequence import Sequence
 from jaxloc.sg2loc.verdict import VerdictConfig, default_verdict
 from jaxloc.sharding import check_divisible, pin_split
@@ -148,54 +156,82 @@ def carry_back(pose: Array, ego_motion: Array) -> Array:
     return first
 
 
-def _initial_state(key, init_args, step_config: StepConfig, capacity: int, mesh: Mesh | None):
+def _initial_state(key, init_args, region: Region, heights, capacity: int, mesh: Mesh | None):
     if init_args is None:
-        region = step_config.region
-        state = init_region(
-            key, capacity, region.lo, region.hi, region.floor_z, heights=step_config.heights
-        )
+        state = init_region(key, capacity, region.lo, region.hi, region.floor_z, heights=heights)
     else:
         centre, half_width, yaw_half_range = init_args
         state = init_box(key, capacity, centre, jnp.full((3,), half_width), yaw_half_range)
     return state if mesh is None else pin_split(state, mesh)
 
 
-@eqx.filter_jit
-def _round(key, init_args, frames, scene, step_config, capacity: int, mesh: Mesh | None):
-    key_init, key_run = jax.random.split(key)
-    state = _initial_state(key_init, init_args, step_config, capacity, mesh)
-    return run_pass(key_run, state, frames, scene, step_config)
-
-
 _jit_initial_state = eqx.filter_jit(_initial_state)
 
+#: How many times each per-frame program of ``localize(..., progress=True)`` was traced (tests
+#: count them).
+TRACE_COUNTS = {"predict": 0, "score": 0, "update": 0}
+
+
+# One frame is three programs: only the scoring depends on the round's ray grid, so the
+# prediction and the update compile once for every round (each took as long to compile as the
+# scoring). Frame ``t`` is picked inside each program (``t`` traced), from frames stacked on T.
+@eqx.filter_jit
+def _predict_frame(key_run, state, index, motion, patch_embeddings, t, sigma, scene):
+    TRACE_COUNTS["predict"] += 1
+    key = jax.random.fold_in(key_run, index[t])
+    state, motion_valid = predict_step(key, state, index[t], motion[t], *sigma)
+    match = match_patches(patch_embeddings[t], scene.embeddings, scene.object_valid)
+    return key, state, motion_valid, match
+
 
 @eqx.filter_jit
-def _jit_step(key, state, frame, scene, step_config, mesh: Mesh | None):
-    state, info = step(key, state, frame, scene, step_config)
+def _score_frame(state, frames, t, scene, step_config, match):
+    TRACE_COUNTS["score"] += 1
+    frame = jax.tree.map(lambda a: a[t], frames)
+    return score_active(state, frame, scene, step_config, match)
+
+
+@eqx.filter_jit
+def _update_frame(key, state, scores, match, index, t, motion_valid, config, mesh: Mesh | None):
+    TRACE_COUNTS["update"] += 1
+    state, info = update_step(key, state, scores, match, index[t], motion_valid, config)
     return (state if mesh is None else pin_split(state, mesh)), info
 
 
-def _round_with_progress(key, init_args, frames, scene, step_config, capacity, mesh, bar):
-    """The same computation as :func:`_round`, one jitted step per frame, updating ``bar``."""
+@eqx.filter_jit
+def _round(key, init_args, frames, scene, step_config, capacity: int, mesh: Mesh | None):
+    """One pass of the filter over ``frames`` (stacked on T), one program: ``(final state,
+    per-frame infos stacked on T)``."""
     key_init, key_run = jax.random.split(key)
-    state = _jit_initial_state(key_init, init_args, step_config, capacity, mesh)
+    state = _initial_state(
+        key_init, init_args, step_config.region, step_config.heights, capacity, mesh
+    )
+    return run_pass(key_run, state, frames, scene, step_config)
+
+
+def _round_with_progress(key, init_args, frames, scene, step_config, capacity, mesh, bar):
+    """:func:`_round` as three jitted programs per frame (:func:`_predict_frame`,
+    :func:`_score_frame`, :func:`_update_frame`; the tests check the results bit for bit),
+    updating ``bar`` after each frame."""
+    key_init, key_run = jax.random.split(key)
+    state = _jit_initial_state(
+        key_init, init_args, step_config.region, step_config.heights, capacity, mesh
+    )
+    sigma = (step_config.sigma_trans, step_config.sigma_rot)
+    update_config = step_config.update
     infos = []
     for t in range(frames.index.shape[0]):
-        frame_key, frame = _frame_of(frames, key_run, t)
-        state, info = _jit_step(frame_key, state, frame, scene, step_config, mesh)
+        t = np.int32(t)
+        key, state, motion_valid, match = _predict_frame(
+            key_run, state, frames.index, frames.motion, frames.patch_embeddings, t, sigma, scene
+        )
+        scores = _score_frame(state, frames, t, scene, step_config, match)
+        state, info = _update_frame(
+            key, state, scores, match, frames.index, t, motion_valid, update_config, mesh
+        )
         infos.append(info)
         bar.update(1)
-    return state, _stacked(infos)
-
-
-# Jitted, not eager: eager indexing and stacking compiled a small program per array shape.
-@jax.jit
-def _frame_of(frames: Frame, key_run: Array, t: Array) -> tuple[Array, Frame]:
-    """Frame ``t`` of ``frames`` and its key ``fold_in(key_run, index)`` (one program per round;
-    ``t`` is traced)."""
-    frame = jax.tree.map(lambda a: a[t], frames)
-    return jax.random.fold_in(key_run, frame.index), frame
+    return _stacked(infos)
 
 
 @jax.jit
@@ -224,8 +260,8 @@ def localize(
         scene: the map.
         sequence: the query (its patch grid fixes the semantic patches).
         config: :class:`SG2LocConfig` (paper defaults).
-        progress: show a progress bar over rounds x frames (runs one jitted step per frame
-            instead of one ``lax.scan`` per round; same result).
+        progress: show a progress bar over rounds x frames (runs each frame as three programs
+            that the rounds share, instead of one ``lax.scan`` per round; same result).
         mesh: a 1-D device mesh (:func:`jaxloc.sharding.device_mesh`) to split the particle
             buffer over; ``config.capacity`` must be a multiple of its device count. Same keys,
             same result as one device up to the float32 reduction order (see
@@ -282,7 +318,7 @@ def localize(
             _, info = _round(keys[r], init_args, frames, scene, step_config, config.capacity, mesh)
         else:
             bar.set_description(f"round {r + 1}/{len(config.strides)} (stride {stride})")
-            _, info = _round_with_progress(
+            info = _round_with_progress(
                 keys[r], init_args, frames, scene, step_config, config.capacity, mesh, bar
             )
         starts.append(centre)
