@@ -437,8 +437,9 @@ def step(
     """One SG2Loc filter step: predict, render, score, weight, estimate, resample, inject.
 
     It is :func:`predict_step`, :func:`~jaxloc.sg2loc.scores.match_patches`,
-    :func:`score_active` and :func:`update_step` in turn (:func:`jaxloc.sg2loc.localize` runs
-    them as separate programs, so that only the scoring compiles per ray grid). The first frame
+    :func:`score_active` and :func:`update_step` in turn (``jaxloc.sg2loc.localize(...,
+    progress=True)`` runs them as separate programs, so that only the scoring compiles per ray
+    grid). The first frame
     (``frame.index == 0``) is not moved: its particles are the initial set. A non-finite
     ego-motion counts as zero motion and is flagged in ``info.motion_valid``.
     """
