@@ -139,8 +139,9 @@ def engine_call_checks(mesh) -> dict:
     return {"embree_rays_per_call": sorted(calls), "rays_per_particle": config.grid.uv.shape[0]}
 
 
-def localize_checks(mesh, engine: str = "auto") -> dict:
-    """The user API: ``sg2loc.localize`` with and without ``mesh`` (one round, 3 frames)."""
+def localize_checks(mesh, engine: str = "auto", progress: bool = False) -> dict:
+    """The user API: ``sg2loc.localize`` with and without ``mesh`` (one round, 3 frames); with
+    ``progress`` also the progress bar's frame-by-frame programs with ``mesh``."""
     scene = tiny.scene()
     config = sg2loc.SG2LocConfig(
         capacity=tiny.CAPACITY,
@@ -152,12 +153,20 @@ def localize_checks(mesh, engine: str = "auto") -> dict:
     key = jax.random.key(5)
     alone = sg2loc.localize(key, scene, sequence, config)
     split = sg2loc.localize(key, scene, sequence, config, mesh=mesh)
-    return {
+    checks = {
         "localize_counts_equal": bool(np.array_equal(alone.num_particles, split.num_particles)),
         "localize_poses_diff": max_abs(alone.round_mle, split.round_mle),
         "localize_particles_devices": len(split.particles.sharding.device_set),
         "localize_nan": bool(np.any(np.isnan(np.asarray(split.poses)))),
     }
+    if progress:
+        framed = sg2loc.localize(key, scene, sequence, config, mesh=mesh, progress=True)
+        checks["progress_counts_equal"] = bool(
+            np.array_equal(split.num_particles, framed.num_particles)
+        )
+        checks["progress_poses_diff"] = max_abs(split.round_mle, framed.round_mle)
+        checks["progress_particles_devices"] = len(framed.particles.sharding.device_set)
+    return checks
 
 
 def query_checks(mesh) -> dict:
@@ -190,7 +199,7 @@ def main() -> None:
     start = time.perf_counter()
     result.update(particle_checks(mesh))
     result["particle_seconds"] = time.perf_counter() - start
-    result.update(localize_checks(mesh))
+    result.update(localize_checks(mesh, progress=True))
     result["localize_seconds"] = time.perf_counter() - start - result["particle_seconds"]
     # every installed engine, and the chunk loop (2 particles per chunk, 2 chunks per device)
     variants = [(engine, None) for engine in ENGINES] + [("auto", 2)]
