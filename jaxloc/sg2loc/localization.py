@@ -223,12 +223,12 @@ def _round_with_progress(key, init_args, frames, scene, step_config, capacity, m
     infos = []
     for t in range(frames.index.shape[0]):
         t = np.int32(t)
-        key, state, motion_valid, match = _predict_frame(
+        frame_key, state, motion_valid, match = _predict_frame(
             key_run, state, frames.index, frames.motion, frames.patch_embeddings, t, sigma, scene
         )
         scores = _score_frame(state, frames, t, scene, step_config, match)
         state, info = _update_frame(
-            key, state, scores, match, frames.index, t, motion_valid, update_config, mesh
+            frame_key, state, scores, match, frames.index, t, motion_valid, update_config, mesh
         )
         infos.append(info)
         bar.update(1)
