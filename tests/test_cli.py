@@ -318,9 +318,20 @@ TINY_SG2LOC = ["--frames", "2", "--particles", "32", "--width", "112", "--height
 
 
 def test_demo_tiny(tmp_path, capsys):
+    """... and its warm-up (the filter's programs compiled from a placeholder of the query's
+    sizes while the query is rendered) traced the programs its localize ran: once each (the two
+    rounds share the stride, hence the scoring), not again for the real sequence."""
+    from jaxloc.sg2loc import localization
+
     figure = tmp_path / "demo.png"
+    traced = dict(localization.TRACE_COUNTS)
     code, out, err = run(["demo", *TINY_SG2LOC, "--strides", "8,8", "--out", figure], capsys)
     assert code == 0, err
+    assert {k: n - traced[k] for k, n in localization.TRACE_COUNTS.items()} == {
+        "predict": 1,
+        "score": 1,
+        "update": 1,
+    }
     assert re.search(r"frame 2: (not )?localized, position error \d+\.\d+ m", out)
     assert figure.read_bytes().startswith(b"\x89PNG")
 

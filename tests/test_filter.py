@@ -361,14 +361,46 @@ def test_step_with_all_invalid_depth(after_first, frames, scene, step_config):
 
 #: Traces of localize's per-frame programs during the ``located`` fixture's call.
 LOCATED_TRACES: dict[str, int] = {}
+#: Programs compiled (or loaded from the persistent cache) by the fixture's ``localize`` call.
+LOCATED_COMPILES: list[str] = []
+#: Every XLA compilation of this process (an in-memory cache hit is none).
+COMPILED: list[str] = []
+
+
+def _count_compilation(event: str, _: float, **kw) -> None:
+    if event.endswith("backend_compile_duration"):
+        COMPILED.append(kw.get("fun_name", "?"))
+
+
+jax.monitoring.register_event_duration_secs_listener(_count_compilation)
+
+
+def shapes_only(sequence: Sequence) -> Sequence:
+    """A placeholder of ``sequence``'s sizes, for :func:`jaxloc.sg2loc.localization.warm_up`."""
+    embedding_dim = sequence.patch_embeddings.shape[-1]
+    return Sequence.zeros(
+        sequence.camera,
+        sequence.num_frames,
+        sequence.patch_shape,
+        embedding_dim,
+        depth=sequence.depth is not None,
+        rgb=sequence.rgb is not None,
+    )
 
 
 @pytest.fixture(scope="module")
 def located(episode, scene) -> SG2LocResult:
-    """With a progress bar: the frame-by-frame programs (the tests below compare the scan)."""
+    """With a progress bar: the frame-by-frame programs (the tests below compare the scan),
+    compiled beforehand by ``warm_up`` from a placeholder sequence of zeros."""
     before = dict(localization.TRACE_COUNTS)
     key = jax.random.key(LOCALIZE_KEY)
+    warming = localization.warm_up(
+        key, scene, shapes_only(episode.sequence), LOCALIZE_CONFIG, progress=True
+    )
+    assert warming.result() is None
+    compiled = len(COMPILED)
     result = localize(key, scene, episode.sequence, LOCALIZE_CONFIG, progress=True)
+    LOCATED_COMPILES.extend(COMPILED[compiled:])
     LOCATED_TRACES.update({k: localization.TRACE_COUNTS[k] - before[k] for k in before})
     return result
 
@@ -380,10 +412,31 @@ def test_localize_compiles_the_prediction_and_the_update_once_for_all_rounds(loc
     assert LOCATED_TRACES == {"predict": 1, "score": 2, "update": 1}
 
 
+def test_after_a_warm_up_localize_compiles_nothing(located):
+    """The fixture's warm-up (a placeholder of the sequence's sizes, compiled in a background
+    thread) left ``localize`` nothing to compile: every program, the small eager ones included,
+    ran from memory."""
+    assert LOCATED_COMPILES == []
+
+
+def test_warm_up_checks_its_arguments_in_the_calling_thread(episode, scene):
+    wrong_width = Sequence.zeros(episode.sequence.camera, 2, (9, 16), 3)
+    with pytest.raises(ValueError, match="patch embeddings have 3 dims"):
+        localization.warm_up(jax.random.key(0), scene, wrong_width, LOCALIZE_CONFIG)
+    too_coarse = dataclasses.replace(LOCALIZE_CONFIG, strides=(10, 200))
+    with pytest.raises(ValueError, match="SSIM needs a ray grid of at least 7 x 7"):
+        localization.warm_up(jax.random.key(0), scene, shapes_only(episode.sequence), too_coarse)
+
+
 def test_localize_with_and_without_a_progress_bar_agree_bit_for_bit(located, episode, scene):
-    """The progress bar's three programs per frame and the scan's one program per round."""
+    """The progress bar's three programs per frame and the scan's one program per round (the
+    scan's compiled beforehand by a warm-up without a progress bar)."""
     key = jax.random.key(LOCALIZE_KEY)
+    placeholder = shapes_only(episode.sequence)
+    localization.warm_up(key, scene, placeholder, LOCALIZE_CONFIG, progress=False).result()
+    compiled = len(COMPILED)
     scanned = localize(key, scene, episode.sequence, LOCALIZE_CONFIG, progress=False)
+    assert COMPILED[compiled:] == []  # the scan's programs came from the warm-up
     assert_bitwise_equal(
         (scanned.poses, scanned.round_mle, scanned.num_particles, scanned.particles),
         (located.poses, located.round_mle, located.num_particles, located.particles),

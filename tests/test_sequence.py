@@ -243,3 +243,27 @@ def test_inputs_are_copied():
         value[...] = 0.0
     for name, value in before.items():
         np.testing.assert_array_equal(getattr(seq, name), value, err_msg=name)
+
+
+@pytest.mark.parametrize("depth, rgb", [(True, True), (False, True), (True, False)])
+def test_zeros_has_the_shapes_and_dtypes_of_a_recording(depth, rgb):
+    """``Sequence.zeros`` (the placeholder ``warm_up`` compiles from) matches a real sequence of
+    the same sizes leaf for leaf: the same shapes, dtypes and missing images."""
+    kwargs = valid_arrays()
+    kwargs.update(depth=kwargs["depth"] if depth else None, rgb=kwargs["rgb"] if rgb else None)
+    real = Sequence(CAMERA, **kwargs)
+    zeros = Sequence.zeros(CAMERA, T, (ROWS, COLS), DIM, depth=depth, rgb=rgb)
+
+    def layout(sequence):
+        return [
+            (a.shape, a.dtype)
+            for a in (sequence.patch_embeddings, sequence.ego_motion, sequence.tilt)
+        ] + [None if a is None else (a.shape, a.dtype) for a in (sequence.depth, sequence.rgb)]
+
+    assert layout(zeros) == layout(real)
+    assert not np.any(zeros.patch_embeddings) and not np.any(zeros.tilt)
+
+
+def test_zeros_of_one_frame_has_no_motion():
+    one = Sequence.zeros(CAMERA, 1, (ROWS, COLS), DIM)
+    assert one.num_frames == 1 and one.ego_motion.shape == (0, 4)

@@ -99,8 +99,9 @@ def run_demo(args: argparse.Namespace) -> int:
 
     from jaxloc.camera import stride_grid
     from jaxloc.metrics import summarize, yaw_pose_errors
-    from jaxloc.sg2loc import SG2LocConfig, localize
+    from jaxloc.sg2loc import Sequence, SG2LocConfig, localize
     from jaxloc.sg2loc.figures import plot_rounds
+    from jaxloc.sg2loc.localization import warm_up
     from jaxloc.sg2loc.rendering import render_batch
     from jaxloc.sg2loc.resampling import KLDConfig
     from jaxloc.synthetic import indoor
@@ -113,8 +114,24 @@ def run_demo(args: argparse.Namespace) -> int:
             f"{args.width} x {args.height} image)"
         )
     start = time.perf_counter()
-    episode = indoor.make_episode(args.seed, args.frames, demo_episode_config(args))
-    scene = episode.scene
+    episode_config = demo_episode_config(args)
+    room = indoor.make_room(args.seed, episode_config.room)
+    scene = indoor.scene_graph(room)
+    sg2loc_config = SG2LocConfig(
+        capacity=args.particles,
+        strides=strides,
+        kld=KLDConfig(min_particles=min(500, args.particles), max_particles=args.particles),
+    )
+    key = jax.random.key(args.seed)
+    # the filter's programs compile on the second core while the query frames are rendered
+    # (make_episode's own two steps, split around it)
+    sensor = episode_config.sensor
+    patch_shape = (sensor.patch_rows, sensor.patch_cols)
+    frame_shapes = Sequence.zeros(
+        sensor.camera(), args.frames, patch_shape, room.embeddings.shape[1]
+    )
+    warm_up(key, scene, frame_shapes, sg2loc_config, progress=True)
+    episode = indoor.episode_in_room(room, room, args.seed, args.frames, episode_config)
     print(
         f"room {episode.room.size[0]:.1f} x {episode.room.size[1]:.1f} m: "
         f"{scene.num_objects} objects, {scene.num_triangles} triangles, "
@@ -134,14 +151,7 @@ def run_demo(args: argparse.Namespace) -> int:
             f"view {t + 1}: {np.sum(seen >= 0)} objects visible, depth {depth.min():.2f}-"
             f"{depth.max():.2f} m, {np.mean(views.valid[t]):.0%} rays hit"
         )
-    sg2loc_config = SG2LocConfig(
-        capacity=args.particles,
-        strides=strides,
-        kld=KLDConfig(min_particles=min(500, args.particles), max_particles=args.particles),
-    )
-    result = localize(
-        jax.random.key(args.seed), scene, episode.sequence, sg2loc_config, progress=True
-    )
+    result = localize(key, scene, episode.sequence, sg2loc_config, progress=True)
     pos_err, rot_err = yaw_pose_errors(np.asarray(result.poses), episode.poses_gt)
     localized = np.asarray(result.localized)
     for t, (p, r) in enumerate(zip(pos_err, rot_err, strict=True)):

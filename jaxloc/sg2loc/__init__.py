@@ -40,6 +40,7 @@ _EXPORTS = {
     "SG2LocResult": "localization",
     "carry_back": "localization",
     "localize": "localization",
+    "warm_up": "localization",
     "Render": "rendering",
     "render": "rendering",
     "render_batch": "rendering",
@@ -60,7 +61,13 @@ if TYPE_CHECKING:  # the lazy names, for type checkers and the API reference
         sharded,
         verdict,
     )
-    from jaxloc.sg2loc.localization import SG2LocConfig, SG2LocResult, carry_back, localize
+    from jaxloc.sg2loc.localization import (
+        SG2LocConfig,
+        SG2LocResult,
+        carry_back,
+        localize,
+        warm_up,
+    )
     from jaxloc.sg2loc.rendering import Render, render, render_batch
     from jaxloc.sg2loc.sequence import Sequence
 
@@ -83,4 +90,5 @@ __all__ = [
     "scores",
     "sharded",
     "verdict",
+    "warm_up",
 ]

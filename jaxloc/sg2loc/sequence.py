@@ -96,6 +96,37 @@ class Sequence(eqx.Module):
         self.rgb = rgb
         self.tilt = tilt
 
+    @classmethod
+    def zeros(
+        cls,
+        camera: Camera,
+        num_frames: int,
+        patch_shape: tuple[int, int],
+        embedding_dim: int,
+        *,
+        depth: bool = True,
+        rgb: bool = True,
+    ) -> Sequence:
+        """A sequence of zeros with the shapes a recording of these sizes will have: a stand-in
+        for :func:`jaxloc.sg2loc.localization.warm_up`, which needs only shapes.
+
+        Args:
+            camera: the pinhole camera (its width and height size the images).
+            num_frames: T.
+            patch_shape: (rows, cols) of the patch grid.
+            embedding_dim: d, the length of a patch embedding.
+            depth, rgb: whether the recording has depth / colour images.
+        """
+        rows, cols = patch_shape
+        image = (num_frames, camera.height, camera.width)
+        return cls(
+            camera,
+            np.zeros((num_frames, rows, cols, embedding_dim), np.float32),
+            np.zeros((max(num_frames - 1, 0), 4), np.float32),
+            depth=np.zeros(image, np.float32) if depth else None,
+            rgb=np.zeros(image + (3,), np.float32) if rgb else None,
+        )
+
     @property
     def num_frames(self) -> int:
         return self.patch_embeddings.shape[0]
