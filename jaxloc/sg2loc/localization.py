@@ -21,7 +21,7 @@ own work (reading the recording).
 from __future__ import annotations
 
 import dataclasses
-from concurrent.futures import Future, ThreadPoolExecutor, wait
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -323,8 +323,7 @@ def localize(
     """
     config = SG2LocConfig() if config is None else config
     step_configs = _checked(scene, sequence, config, mesh)
-    wait(tuple(_WARM_UPS))  # a warm-up of these programs still compiling: use its programs
-    return _run_rounds(key, scene, sequence, config, step_configs, progress, mesh)
+    return _run_rounds(key, scene, sequence, config, step_configs, progress, mesh, _call)
 
 
 def warm_up(
@@ -342,8 +341,9 @@ def warm_up(
 
     Only the arguments' shapes, dtypes and static settings matter, not their values: while a
     recording is still being read, pass a placeholder of its sizes (:meth:`Sequence.zeros`).
-    :func:`localize` with arguments of the same shapes then compiles nothing; it waits for a
-    warm-up still compiling rather than compiling the same programs a second time.
+    :func:`localize` with arguments of the same shapes then compiles nothing, even while the
+    warm-up is still compiling: it can start at once (JAX's compilation cache makes a call wait
+    for a program that another thread is compiling, and the first programs compile first).
 
     The programs are traced and lowered here, in the calling thread (~1 s for the paper's three
     rounds on 2 CPU cores: that work holds the GIL, so overlapping it with the caller's own
@@ -366,14 +366,10 @@ def warm_up(
     lowering = _Lowering(_warm_up_thread)
     _run_rounds(key, scene, sequence, config, step_configs, progress, mesh, lowering)
     # the thread runs its tasks in turn: this one ends after every compilation
-    future = _warm_up_thread.submit(_raise_first_failure, lowering.compiled)
-    _WARM_UPS.add(future)
-    future.add_done_callback(_WARM_UPS.discard)
-    return future
+    return _warm_up_thread.submit(_raise_first_failure, lowering.compiled)
 
 
-#: Warm-ups not finished yet (:func:`localize` waits for them) and the thread that runs them.
-_WARM_UPS: set[Future] = set()
+#: The thread that compiles the warm-ups' programs, one after the other.
 _warm_up_thread: ThreadPoolExecutor | None = None
 
 
@@ -419,9 +415,7 @@ def _checked(scene, sequence, config: SG2LocConfig, mesh) -> tuple[StepConfig, .
     )
 
 
-def _run_rounds(
-    key, scene, sequence, config, step_configs, progress, mesh, run=_call
-) -> SG2LocResult:
+def _run_rounds(key, scene, sequence, config, step_configs, progress, mesh, run) -> SG2LocResult:
     """The rounds of :func:`localize` (``step_configs`` from :func:`_checked`), each jitted
     program run by ``run`` (:func:`_call`; a :class:`_Lowering` lowers them instead, without a
     progress bar)."""
