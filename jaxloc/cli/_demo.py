@@ -131,6 +131,7 @@ def run_demo(args: argparse.Namespace) -> int:
         sensor.camera(), args.frames, patch_shape, room.embeddings.shape[1]
     )
     warm_up(key, scene, frame_shapes, sg2loc_config, progress=True)
+    del frame_shapes  # 50 MB of zeros at 960 x 540
     episode = indoor.episode_in_room(room, room, args.seed, args.frames, episode_config)
     print(
         f"room {episode.room.size[0]:.1f} x {episode.room.size[1]:.1f} m: "

@@ -271,7 +271,7 @@ class _Lowering:
 
     def __call__(self, program, *args):
         lowered = program.lower(*args)
-        self.compiled.append(self.compiler.submit(lowered.compile))
+        self.compiled.append(self.compiler.submit(_compile, lowered))
         if isinstance(lowered, jax.stages.Lowered):
             shapes = lowered.out_info
         else:  # equinox's: its output's arrays, then the rest of its output put back
@@ -371,6 +371,11 @@ def warm_up(
 
 #: The thread that compiles the warm-ups' programs, one after the other.
 _warm_up_thread: ThreadPoolExecutor | None = None
+
+
+def _compile(lowered) -> None:
+    """Compile ``lowered`` into JAX's caches; keeps neither it nor the result (memory)."""
+    lowered.compile()
 
 
 def _raise_first_failure(futures: list[Future]) -> None:
