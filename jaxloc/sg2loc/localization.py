@@ -345,7 +345,7 @@ def warm_up(
     warm-up is still compiling: it can start at once (JAX's compilation cache makes a call wait
     for a program that another thread is compiling, and the first programs compile first).
 
-    The programs are traced and lowered here, in the calling thread (~1 s for the paper's three
+    The programs are traced and lowered here, in the calling thread (~1.5 s for the paper's three
     rounds on 2 CPU cores: that work holds the GIL, so overlapping it with the caller's own
     Python would gain nothing), and compiled in the background (XLA releases the GIL; ~5 s of
     compilation for the same rounds). They also go to the persistent compilation cache, where
@@ -360,17 +360,14 @@ def warm_up(
     """
     config = SG2LocConfig() if config is None else config
     step_configs = _checked(scene, sequence, config, mesh)
-    global _warm_up_thread
-    if _warm_up_thread is None:
-        _warm_up_thread = ThreadPoolExecutor(1, thread_name_prefix="jaxloc-warm-up")
     lowering = _Lowering(_warm_up_thread)
     _run_rounds(key, scene, sequence, config, step_configs, progress, mesh, lowering)
     # the thread runs its tasks in turn: this one ends after every compilation
     return _warm_up_thread.submit(_raise_first_failure, lowering.compiled)
 
 
-#: The thread that compiles the warm-ups' programs, one after the other.
-_warm_up_thread: ThreadPoolExecutor | None = None
+#: The thread that compiles the warm-ups' programs, one after the other (started on first use).
+_warm_up_thread = ThreadPoolExecutor(1, thread_name_prefix="jaxloc-warm-up")
 
 
 def _compile(lowered) -> None:
