@@ -19,7 +19,8 @@ program is compiled instead. Beside JAX's entries the folder keeps jaxloc's trac
 those are not counted in the size bound, and ``jaxloc cache --clear`` removes them too.
 
 The SG2Loc commands also compile faster, with XLA:CPU's legacy fusion emitters
-(:func:`prefer_fast_compilation`).
+(:func:`prefer_fast_compilation`); a single program can ask for them too
+(:func:`legacy_emitter_options`, :func:`cached_call`'s ``compiler_options``).
 
 On some x86 CPUs (AMD Zen 4 here; Cascade Lake in jax-ml/jax#38445) jaxlib 0.9-0.10 logs two
 ``E ... cpu_aot_loader.cc] Loading XLA:CPU AOT result. Target machine feature +prefer-no-gather is
@@ -44,7 +45,7 @@ ENV_OFF = "JAXLOC_NO_CACHE"
 #: Size bound of the cache folder in bytes (2 GiB); JAX evicts the least recently used entries.
 DEFAULT_MAX_BYTES = 2 * 1024**3
 #: In this process: the exported programs by key, their compiled forms (or :func:`prepare_call`'s
-#: futures of them) by ("compiled", key), the source digest ("source"), the folder
+#: futures of them) by ("compiled", key, options), the source digest ("source"), the folder
 #: :func:`enable_compilation_cache` turned on ("folder") and the compiling thread ("compiler").
 _PROGRAMS: dict[object, object] = {}
 
@@ -72,6 +73,8 @@ FAST_COMPILATION_FLAG = "--xla_cpu_use_fusion_emitters=false"
 #: The jaxlib versions (major, minor), inclusive, whose XLA has that flag; an unknown flag in
 #: ``XLA_FLAGS`` aborts the process, so it is not set for any other version.
 FAST_COMPILATION_JAXLIB = ((0, 7), (0, 10))
+#: The same choice as one program's compile option (:func:`legacy_emitter_options`).
+LEGACY_EMITTER_OPTION = "xla_cpu_use_fusion_emitters"
 
 
 def prefer_fast_compilation() -> bool:
@@ -85,15 +88,22 @@ def prefer_fast_compilation() -> bool:
     3.2 -> 2.6 s, the single-scale M2Loc query 4.0 -> 2.4 s). The filter rounds run as fast;
     the M2Loc query with three scales runs 20-30 % slower (paired reductions such as ``argmax``
     run ~2x slower with these emitters; the greedy clique loops avoid it), so the LiDAR commands
-    do not use them (benchmarks/results/startup_cpu.md). Not the default either: the two
+    do not use them, except for the query programs of one scale (:func:`legacy_emitter_options`;
+    benchmarks/results/startup_cpu.md). Not the default either: the two
     emitters contract some fused float32 multiply-adds differently, so results can differ in the
     last bits (the SG2Loc rounds' and the M2Loc query's outputs were bit-identical in our
     comparisons; the JAX ray-triangle kernel's ``t`` moved by up to 5e-5, relative, on 9 % of
     random rays). In a notebook or script, call it before importing jax, or set the flag
     yourself. Returns whether it did.
     """
-    if "jax" in sys.modules or "XLA_FLAGS" in os.environ:
+    if "jax" in sys.modules or "XLA_FLAGS" in os.environ or not _jaxlib_has_legacy_emitters():
         return False
+    os.environ["XLA_FLAGS"] = FAST_COMPILATION_FLAG
+    return True
+
+
+def _jaxlib_has_legacy_emitters() -> bool:
+    """Whether the installed jaxlib is one of :data:`FAST_COMPILATION_JAXLIB`."""
     from importlib.metadata import PackageNotFoundError, version
 
     try:
@@ -101,10 +111,23 @@ def prefer_fast_compilation() -> bool:
     except (PackageNotFoundError, ValueError):
         return False
     low, high = FAST_COMPILATION_JAXLIB
-    if not low <= release <= high:
-        return False
-    os.environ["XLA_FLAGS"] = FAST_COMPILATION_FLAG
-    return True
+    return low <= release <= high
+
+
+def legacy_emitter_options() -> dict[str, bool]:
+    """The ``compiler_options`` that compile one program with XLA:CPU's legacy fusion emitters
+    (:func:`prefer_fast_compilation` for a single program: ``{"xla_cpu_use_fusion_emitters":
+    False}``), or ``{}`` where they do not apply: another backend, or a jaxlib outside
+    :data:`FAST_COMPILATION_JAXLIB` (XLA refuses an option it does not know).
+
+    For a program that compiles much faster with them and runs as fast, chosen by measurement
+    (:func:`cached_call`'s ``compiler_options``; the M2Loc query of a small consistency graph).
+    """
+    import jax
+
+    if jax.default_backend() != "cpu" or not _jaxlib_has_legacy_emitters():
+        return {}
+    return {LEGACY_EMITTER_OPTION: False}
 
 
 def default_cache_dir() -> Path:
@@ -271,24 +294,25 @@ def _program(name: str, fn, args):
     return key, exported, leaves
 
 
-def _compile(exported, leaves):
-    """The compiled program of ``exported`` for arguments shaped like ``leaves`` (through JAX's
-    persistent cache: the same lowering whether the leaves are arrays or shapes)."""
+def _compile(exported, leaves, options: dict):
+    """The compiled program of ``exported`` for arguments shaped like ``leaves``, with XLA
+    compile ``options`` (through JAX's persistent cache, whose key covers them: the same lowering
+    whether the leaves are arrays or shapes)."""
     import jax
 
     shapes = [jax.ShapeDtypeStruct(x.shape, x.dtype) for x in leaves]
-    return jax.jit(exported.call).lower(*shapes).compile()
+    return jax.jit(exported.call).lower(*shapes).compile(options or None)
 
 
-def prepare_call(name: str, fn, *args) -> tuple | None:
+def prepare_call(name: str, fn, *args, compiler_options: dict | None = None) -> tuple | None:
     """Trace ``fn(*args)`` now and compile it in a background thread, for a later
     :func:`cached_call` with arguments of the same shapes (and equal static parts) to find ready.
 
-    ``args`` are as :func:`cached_call`'s, with ``jax.ShapeDtypeStruct`` leaves allowed in place of
-    arrays: a caller that knows the shapes before it has the values (a map's size before it is
-    described) overlaps XLA's compilation (C++, without the GIL) with that work. The compilation
-    takes both cores while it runs. Without the cache, nothing is done (``fn`` then compiles at
-    its first call, as usual).
+    ``args`` and ``compiler_options`` are as :func:`cached_call`'s, with
+    ``jax.ShapeDtypeStruct`` leaves allowed in place of arrays: a caller that knows the shapes
+    before it has the values (a map's size before it is described) overlaps XLA's compilation
+    (C++, without the GIL) with that work. The compilation takes both cores while it runs. Without
+    the cache, nothing is done (``fn`` then compiles at its first call, as usual).
 
     Returns:
         The shapes of ``fn``'s output leaves (a tuple of ``jax.ShapeDtypeStruct``, in
@@ -301,14 +325,16 @@ def prepare_call(name: str, fn, *args) -> tuple | None:
     import jax
 
     key, exported, leaves = _program(name, fn, args)
-    if ("compiled", key) not in _PROGRAMS:
+    options = dict(compiler_options or {})
+    compiled_key = ("compiled", key, *sorted(options.items()))
+    if compiled_key not in _PROGRAMS:
         if "compiler" not in _PROGRAMS:
             _PROGRAMS["compiler"] = ThreadPoolExecutor(1, thread_name_prefix="jaxloc-compile")
-        _PROGRAMS["compiled", key] = _PROGRAMS["compiler"].submit(_compile, exported, leaves)
+        _PROGRAMS[compiled_key] = _PROGRAMS["compiler"].submit(_compile, exported, leaves, options)
     return tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in exported.out_avals)
 
 
-def cached_call(name: str, fn, rebuild, *args):
+def cached_call(name: str, fn, rebuild, *args, compiler_options: dict | None = None):
     """``fn(*args)`` through a traced program kept in the cache folder (``jax.export``).
 
     With the compilation cache on, the first call of a key traces ``fn`` once and stores the
@@ -325,15 +351,20 @@ def cached_call(name: str, fn, rebuild, *args):
         rebuild: builds ``fn``'s output from the flat tuple of its array leaves, in
             ``jax.tree.leaves`` order (e.g. ``tuple``, or an ``eqx.Module`` class's constructor).
         args: the arguments.
+        compiler_options: XLA compile options of the program (e.g.
+            :func:`legacy_emitter_options`; part of the persistent cache's key). Without the
+            cache they do not apply: ``fn`` compiles as it would anyway.
     """
     if not cache_enabled():
         return fn(*args)
     from concurrent.futures import Future
 
     key, exported, leaves = _program(name, fn, args)
-    compiled = _PROGRAMS.get(("compiled", key))
+    options = dict(compiler_options or {})
+    compiled_key = ("compiled", key, *sorted(options.items()))
+    compiled = _PROGRAMS.get(compiled_key)
     if compiled is None:
-        compiled = _PROGRAMS["compiled", key] = _compile(exported, leaves)
+        compiled = _PROGRAMS[compiled_key] = _compile(exported, leaves, options)
     elif isinstance(compiled, Future):  # prepare_call's, compiling or done
-        compiled = _PROGRAMS["compiled", key] = compiled.result()
+        compiled = _PROGRAMS[compiled_key] = compiled.result()
     return rebuild(compiled(*leaves))

@@ -14,11 +14,13 @@ Conventions (a contract of the whole library):
 * Ego-motion from frame t to t+1: ``(R_z(-yaw_t) (p_{t+1} - p_t), wrap(yaw_{t+1} - yaw_t))``.
 
 Every function works on one pose; leading batch axes come from ``jax.vmap`` (or jaxlie's own
-broadcasting for SE(3) objects).
+broadcasting for SE(3) objects). :func:`consecutive_ego_motions` is the one batched, jitted helper
+(a recording's ego-motion in one program, not one eager dispatch per operation).
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import jaxlie
 import numpy as np
@@ -93,6 +95,13 @@ def ego_motion(pose_a: Array, pose_b: Array) -> Array:
     return jnp.stack(
         [c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2], wrap_angle(pose_b[3] - pose_a[3])]
     )
+
+
+@jax.jit
+def consecutive_ego_motions(poses: Array) -> Array:
+    """(T-1, 4) :func:`ego_motion` between consecutive poses of (T, 4) ``(x, y, z, yaw)`` poses
+    (T >= 1), one compiled program per T."""
+    return jax.vmap(ego_motion)(poses[:-1], poses[1:])
 
 
 def uncompose_yaw(pose_b: Array, delta: Array) -> Array:

@@ -11,6 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from jaxloc import compilation_cache
@@ -194,3 +195,28 @@ def test_fast_compilation_is_not_set_once_jax_is_imported_or_for_other_jaxlibs(m
     assert not prefer_fast_compilation() and "XLA_FLAGS" not in os.environ
     monkeypatch.setattr(compilation_cache, "FAST_COMPILATION_JAXLIB", ((0, 0), (99, 0)))
     assert prefer_fast_compilation() and os.environ["XLA_FLAGS"] == FAST_COMPILATION_FLAG
+
+
+def test_legacy_emitter_options_reach_the_compiler_only_where_xla_knows_them(tmp_path, monkeypatch):
+    """cached_call hands its compiler_options to XLA (an unknown one is refused, a known one
+    compiles the same values); legacy_emitter_options is empty for a jaxlib without the option."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxloc.compilation_cache import cached_call, legacy_emitter_options
+
+    monkeypatch.delenv("JAXLOC_NO_CACHE", raising=False)
+    monkeypatch.setitem(compilation_cache._PROGRAMS, "folder", tmp_path / "cache")
+    x = jnp.linspace(-2.0, 2.0, 7)
+
+    def program(x):
+        return jnp.tanh(x) * x + 1.0, jnp.argmax(x)
+
+    expected = jax.jit(program)(x)
+    got = cached_call("legacy", program, tuple, x, compiler_options=legacy_emitter_options())
+    for value, reference in zip(got, expected, strict=True):
+        np.testing.assert_allclose(value, reference, rtol=1e-6)
+    with pytest.raises(Exception, match="xla_no_such_option"):
+        cached_call("unknown", program, tuple, x, compiler_options={"xla_no_such_option": True})
+    monkeypatch.setattr(compilation_cache, "FAST_COMPILATION_JAXLIB", ((0, 3), (0, 4)))
+    assert legacy_emitter_options() == {}

@@ -400,8 +400,9 @@ _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
 
 #: The commands compiled with XLA:CPU's legacy fusion emitters (:func:`prefer_fast_compilation`):
 #: the SG2Loc ones, whose filter rounds compile 20 % faster with them and run as fast. The M2Loc
-#: query with its default three scales runs 20-30 % slower with them (its single-scale program as
-#: fast), so the LiDAR commands keep XLA's defaults.
+#: query with its default three scales runs ~20 % slower with them, so the LiDAR commands keep
+#: XLA's defaults; only their query program of small graphs (one scale) uses them, per program
+#: (``jaxloc.m2loc._localization.LEGACY_EMITTERS_MAX_ASSOCIATIONS``).
 FAST_COMPILATION_COMMANDS = frozenset({"localize-camera", "demo"})
 
 

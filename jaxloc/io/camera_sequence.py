@@ -32,12 +32,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import NamedTuple
 
-import jax
 import numpy as np
 from PIL import Image
 
 from jaxloc.camera import Camera
-from jaxloc.geometry import ego_motion
+from jaxloc.geometry import consecutive_ego_motions
 from jaxloc.io._npy import read_numeric_npy
 from jaxloc.io._text import data_lines, parse_finite_floats
 from jaxloc.io.camera_frames import (
@@ -57,9 +56,6 @@ from jaxloc.sg2loc.sequence import Sequence
 
 #: The camera recording layouts read (and detected): the ``format=`` of the camera openers.
 CAMERA_FORMATS = ("scannet-export", "sens", "3rscan")
-
-#: Ego-motion between consecutive poses (T-1, 4) of (T, 4) poses, one compiled program.
-_ego_motions = jax.jit(jax.vmap(ego_motion))
 
 
 class CameraRecording(NamedTuple):
@@ -344,7 +340,7 @@ def load_camera_sequence(
     tilt = np.stack([t for _, t in pose_tilt])
     motion = np.zeros((0, 4))
     if len(kept) > 1:
-        motion = np.asarray(_ego_motions(poses[:-1], poses[1:]), np.float64)
+        motion = np.asarray(consecutive_ego_motions(poses), np.float64)
     sequence = Sequence(
         camera,
         np.stack(embeddings),

@@ -9,7 +9,7 @@ import numpy as np
 from scipy import ndimage
 
 from jaxloc.camera import Camera, stride_grid
-from jaxloc.geometry import ego_motion
+from jaxloc.geometry import consecutive_ego_motions
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc.rendering import render
 
@@ -170,7 +170,7 @@ def noisy_ego_motion(
     (``translation_sigma`` metres on each of dx, dy, dz; ``yaw_sigma`` radians on dyaw)."""
     if len(poses) < 2:
         return np.zeros((0, 4), np.float32)
-    true = np.asarray(jax.vmap(ego_motion)(poses[:-1], poses[1:]), np.float64)
+    true = np.asarray(consecutive_ego_motions(poses), np.float64)
     sigma = np.array([translation_sigma] * 3 + [yaw_sigma])
     noisy = true + sigma * rng.normal(size=true.shape)
     noisy[:, 3] = (noisy[:, 3] + np.pi) % (2 * np.pi) - np.pi
