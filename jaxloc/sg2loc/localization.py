@@ -319,7 +319,9 @@ def localize(
             :mod:`jaxloc.sharding`).
 
     Raises:
-        ValueError: the capacity does not split evenly over ``mesh``.
+        TypeError: ``scene`` or ``sequence`` of the wrong type.
+        ValueError: embeddings of another length than the map's, or a capacity that does not
+            split evenly over ``mesh``.
     """
     config = SG2LocConfig() if config is None else config
     step_configs = _checked(scene, sequence, config, mesh)
@@ -353,10 +355,17 @@ def warm_up(
 
     Args:
         key: a PRNG key of the kind :func:`localize` will get (its value is not used).
-        scene, sequence, config, progress, mesh: as for :func:`localize`.
+        scene: as for :func:`localize`.
+        sequence: as for :func:`localize` (or :meth:`Sequence.zeros` of its sizes).
+        config: as for :func:`localize`.
+        progress: as for :func:`localize` (the frame-by-frame programs, or the scans).
+        mesh: as for :func:`localize`.
 
     Raises:
-        the errors of :func:`localize`'s argument checks, here rather than in the future.
+        TypeError: ``scene`` or ``sequence`` of the wrong type (as :func:`localize`, here
+            rather than in the future).
+        ValueError: embeddings of another length than the map's, or a capacity that does not
+            split evenly over ``mesh`` (as :func:`localize`).
     """
     config = SG2LocConfig() if config is None else config
     step_configs = _checked(scene, sequence, config, mesh)

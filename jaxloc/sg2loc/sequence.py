@@ -115,7 +115,8 @@ class Sequence(eqx.Module):
             num_frames: T.
             patch_shape: (rows, cols) of the patch grid.
             embedding_dim: d, the length of a patch embedding.
-            depth, rgb: whether the recording has depth / colour images.
+            depth: whether the recording has depth images.
+            rgb: whether the recording has colour images.
         """
         rows, cols = patch_shape
         image = (num_frames, camera.height, camera.width)
