@@ -33,6 +33,7 @@ in a notebook, set ``TF_CPP_MIN_LOG_LEVEL=3`` before importing jax to do the sam
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import sys
@@ -104,14 +105,21 @@ def prefer_fast_compilation() -> bool:
 
 def _jaxlib_has_legacy_emitters() -> bool:
     """Whether the installed jaxlib is one of :data:`FAST_COMPILATION_JAXLIB`."""
+    release = _jaxlib_release()
+    low, high = FAST_COMPILATION_JAXLIB
+    return release is not None and low <= release <= high
+
+
+@functools.cache
+def _jaxlib_release() -> tuple[int, ...] | None:
+    """(major, minor) of the installed jaxlib, None where unknown (read once: the query path
+    asks on every call)."""
     from importlib.metadata import PackageNotFoundError, version
 
     try:
-        release = tuple(int(part) for part in version("jaxlib").split(".")[:2])
+        return tuple(int(part) for part in version("jaxlib").split(".")[:2])
     except (PackageNotFoundError, ValueError):
-        return False
-    low, high = FAST_COMPILATION_JAXLIB
-    return low <= release <= high
+        return None
 
 
 def legacy_emitter_options() -> dict[str, bool]:
@@ -294,6 +302,11 @@ def _program(name: str, fn, args):
     return key, exported, leaves
 
 
+def _compiled_key(key: str, options: dict) -> tuple:
+    """The :data:`_PROGRAMS` key of the program ``key`` compiled with ``options``."""
+    return ("compiled", key, *sorted(options.items()))
+
+
 def _compile(exported, leaves, options: dict):
     """The compiled program of ``exported`` for arguments shaped like ``leaves``, with XLA
     compile ``options`` (through JAX's persistent cache, whose key covers them: the same lowering
@@ -326,7 +339,7 @@ def prepare_call(name: str, fn, *args, compiler_options: dict | None = None) -> 
 
     key, exported, leaves = _program(name, fn, args)
     options = dict(compiler_options or {})
-    compiled_key = ("compiled", key, *sorted(options.items()))
+    compiled_key = _compiled_key(key, options)
     if compiled_key not in _PROGRAMS:
         if "compiler" not in _PROGRAMS:
             _PROGRAMS["compiler"] = ThreadPoolExecutor(1, thread_name_prefix="jaxloc-compile")
@@ -361,7 +374,7 @@ def cached_call(name: str, fn, rebuild, *args, compiler_options: dict | None = N
 
     key, exported, leaves = _program(name, fn, args)
     options = dict(compiler_options or {})
-    compiled_key = ("compiled", key, *sorted(options.items()))
+    compiled_key = _compiled_key(key, options)
     compiled = _PROGRAMS.get(compiled_key)
     if compiled is None:
         compiled = _PROGRAMS[compiled_key] = _compile(exported, leaves, options)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+import time
 
 import jax
 import jax.numpy as jnp
@@ -364,6 +365,10 @@ def test_step_with_all_invalid_depth(after_first, frames, scene, step_config):
 LOCATED_TRACES: dict[str, int] = {}
 #: Programs compiled (or loaded from the persistent cache) by the fixture's ``localize`` call.
 LOCATED_COMPILES: list[str] = []
+#: How long the located fixture keeps the warm-up thread busy before its compilations (past the
+#: lowering), and how many of them were still queued when its localize started.
+WARM_UP_THREAD_BUSY_S = 2.0
+LOCATED_QUEUED: list[int] = []
 #: Every XLA compilation of this process (an in-memory cache hit is none).
 COMPILED: list[str] = []
 
@@ -395,11 +400,14 @@ def located(episode, scene) -> SG2LocResult:
     compiled beforehand by ``warm_up`` from a placeholder sequence of zeros."""
     before = dict(localization.TRACE_COUNTS)
     key = jax.random.key(LOCALIZE_KEY)
+    # the warm-up thread kept busy past the lowering: localize starts with the compilations queued
+    localization._warm_up_thread.submit(time.sleep, WARM_UP_THREAD_BUSY_S)
     warming = localization.warm_up(
         key, scene, shapes_only(episode.sequence), LOCALIZE_CONFIG, progress=True
     )
+    LOCATED_QUEUED.append(sum(not f.running() for f in localization._QUEUED.values()))
     compiled = len(COMPILED)
-    # at once: each round waits for its programs (the second compiles while the first runs)
+    # at once: each program waits for its compilation, queued or in flight
     result = localize(key, scene, episode.sequence, LOCALIZE_CONFIG, progress=True)
     assert warming.result() is None
     here = threading.current_thread().name
@@ -418,7 +426,9 @@ def test_localize_compiles_the_prediction_and_the_update_once_for_all_rounds(loc
 def test_after_a_warm_up_localize_compiles_nothing(located):
     """The fixture's warm-up (a placeholder of the sequence's sizes, compiled in a background
     thread) left ``localize``, called before it finished, nothing to compile: every program, the
-    small eager ones included, ran from memory."""
+    small eager ones included, ran from memory, also those whose compilation had not started when
+    ``localize`` reached them (the warm-up thread was busy until after the lowering)."""
+    assert LOCATED_QUEUED[0] > 0
     assert LOCATED_COMPILES == []
 
 

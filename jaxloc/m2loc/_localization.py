@@ -12,7 +12,7 @@ import numpy as np
 from jaxloc.compilation_cache import cached_call, legacy_emitter_options, prepare_call
 from jaxloc.m2loc._config import TripletConfig
 from jaxloc.m2loc._map import TripletMap, build_map, check_points_labels
-from jaxloc.m2loc._query import QueryOutput, describe_query, register_query
+from jaxloc.m2loc._query import QueryOutput, describe_query, matches_per_vertex, register_query
 
 
 class LocalizationResult(NamedTuple):
@@ -70,9 +70,8 @@ LEGACY_EMITTERS_MAX_ASSOCIATIONS = 1024
 def _register_options(triplet_map: TripletMap, capacity: int) -> dict:
     """The compile options of the query program of ``triplet_map`` (or its shapes) for scans
     padded to ``capacity`` (:data:`LEGACY_EMITTERS_MAX_ASSOCIATIONS`)."""
-    config = triplet_map.config
-    k = min(config.top_k, triplet_map.points.shape[0])  # as register_query
-    associations = config.descriptor.num_scales * capacity * k
+    scales = triplet_map.config.descriptor.num_scales
+    associations = scales * capacity * matches_per_vertex(triplet_map)
     return legacy_emitter_options() if associations <= LEGACY_EMITTERS_MAX_ASSOCIATIONS else {}
 
 

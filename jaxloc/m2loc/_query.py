@@ -116,6 +116,12 @@ def verified_fraction(
 
 
 @eqx.filter_jit
+def matches_per_vertex(triplet_map: TripletMap) -> int:
+    """k: the map vertices each query vertex is matched to at each scale (static): ``top_k``,
+    or every map vertex where the map holds fewer. ``triplet_map`` may be the map's shapes."""
+    return min(triplet_map.config.top_k, triplet_map.points.shape[0])
+
+
 def register_query(
     triplet_map: TripletMap,
     points: Array,
@@ -138,7 +144,7 @@ def register_query(
     TRACE_COUNTS["register_query"] += 1
     config = triplet_map.config
     num_scales, nq, _ = descriptors.shape
-    k = min(config.top_k, triplet_map.points.shape[0])  # a small map: as many as it holds
+    k = matches_per_vertex(triplet_map)
     # A Python loop over the (at most a few) scales, not vmap: XLA:CPU runs the batched
     # (1, Nq, D) x (1, Nm, D) similarity ~2.7x slower than the plain matrix product
     # (benchmarks/triplet.py --stages; 14.2 vs 5.2 ms on Town01).

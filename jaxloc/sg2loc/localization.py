@@ -21,7 +21,7 @@ own work (reading the recording).
 from __future__ import annotations
 
 import dataclasses
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -256,14 +256,30 @@ def _round_with_progress(key, init_args, frames, scene, step_config, capacity, m
 
 
 def _call(program, *args):
+    if _QUEUED:  # a warm-up is compiling: wait for its compilation of this program, if it has one
+        queued = _QUEUED.get(_program_key(program, args))
+        if queued is not None:
+            wait([queued])
     return program(*args)
+
+
+#: The compilations that warm-ups have queued and not finished, by :func:`_program_key`. JAX makes
+#: a call wait for a program another thread is compiling, but not for one still in the queue: a
+#: call that got there first would compile it again on the calling thread.
+_QUEUED: dict[tuple, Future] = {}
+
+
+def _program_key(program, args: tuple) -> tuple:
+    """``program`` with the structure, shapes and dtypes of ``args`` (values do not matter)."""
+    leaves, treedef = jax.tree.flatten(args)
+    return program, treedef, tuple((np.shape(x), getattr(x, "dtype", type(x))) for x in leaves)
 
 
 class _Lowering:
     """Runs no program: lowers each jitted ``program`` for ``args``, has ``compiler`` (a
-    one-thread executor) compile it in the background while the next ones are lowered, and
-    returns zeros shaped like its output, for :func:`warm_up`. ``compiled``: the compilations'
-    futures, in call order."""
+    one-thread executor) compile it in the background while the next ones are lowered (in
+    :data:`_QUEUED` until compiled, for :func:`_call` to wait for), and returns zeros shaped like
+    its output, for :func:`warm_up`. ``compiled``: the compilations' futures, in call order."""
 
     def __init__(self, compiler: ThreadPoolExecutor):
         self.compiler = compiler
@@ -271,7 +287,11 @@ class _Lowering:
 
     def __call__(self, program, *args):
         lowered = program.lower(*args)
-        self.compiled.append(self.compiler.submit(_compile, lowered))
+        compiled = self.compiler.submit(_compile, lowered)
+        key = _program_key(program, args)
+        _QUEUED.setdefault(key, compiled)  # a program met again compiles from memory then
+        compiled.add_done_callback(lambda done: _QUEUED.pop(key) if _QUEUED.get(key) is done else 0)
+        self.compiled.append(compiled)
         if isinstance(lowered, jax.stages.Lowered):
             shapes = lowered.out_info
         else:  # equinox's: its output's arrays, then the rest of its output put back
@@ -344,8 +364,8 @@ def warm_up(
     Only the arguments' shapes, dtypes and static settings matter, not their values: while a
     recording is still being read, pass a placeholder of its sizes (:meth:`Sequence.zeros`).
     :func:`localize` with arguments of the same shapes then compiles nothing, even while the
-    warm-up is still compiling: it can start at once (JAX's compilation cache makes a call wait
-    for a program that another thread is compiling, and the first programs compile first).
+    warm-up is still compiling: it can start at once, and each of its programs waits for the
+    warm-up's compilation of it, queued or in flight (the first programs compile first).
 
     The programs are traced and lowered here, in the calling thread (~1.5 s for the paper's three
     rounds on 2 CPU cores: that work holds the GIL, so overlapping it with the caller's own
