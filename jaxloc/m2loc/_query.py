@@ -115,13 +115,13 @@ def verified_fraction(
     return kept / jnp.maximum(jnp.sum(mask) - discount, 1)
 
 
-@eqx.filter_jit
 def matches_per_vertex(triplet_map: TripletMap) -> int:
     """k: the map vertices each query vertex is matched to at each scale (static): ``top_k``,
     or every map vertex where the map holds fewer. ``triplet_map`` may be the map's shapes."""
     return min(triplet_map.config.top_k, triplet_map.points.shape[0])
 
 
+@eqx.filter_jit
 def register_query(
     triplet_map: TripletMap,
     points: Array,
