@@ -405,7 +405,7 @@ def located(episode, scene) -> SG2LocResult:
     warming = localization.warm_up(
         key, scene, shapes_only(episode.sequence), LOCALIZE_CONFIG, progress=True
     )
-    LOCATED_QUEUED.append(sum(not f.running() for f in localization._QUEUED.values()))
+    LOCATED_QUEUED.append(sum(not (f.running() or f.done()) for f in localization._QUEUED.values()))
     compiled = len(COMPILED)
     # at once: each program waits for its compilation, queued or in flight
     result = localize(key, scene, episode.sequence, LOCALIZE_CONFIG, progress=True)

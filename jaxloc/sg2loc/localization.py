@@ -21,6 +21,7 @@ own work (reading the recording).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from typing import Any, NamedTuple
 
@@ -269,6 +270,12 @@ def _call(program, *args):
 _QUEUED: dict[tuple, Future] = {}
 
 
+def _forget(key: tuple, compiled: Future) -> None:
+    """Drops ``key`` from :data:`_QUEUED` once its ``compiled`` future is done."""
+    if _QUEUED.get(key) is compiled:
+        del _QUEUED[key]
+
+
 def _program_key(program, args: tuple) -> tuple:
     """``program`` with the structure, shapes and dtypes of ``args`` (values do not matter)."""
     leaves, treedef = jax.tree.flatten(args)
@@ -290,7 +297,7 @@ class _Lowering:
         compiled = self.compiler.submit(_compile, lowered)
         key = _program_key(program, args)
         _QUEUED.setdefault(key, compiled)  # a program met again compiles from memory then
-        compiled.add_done_callback(lambda done: _QUEUED.pop(key) if _QUEUED.get(key) is done else 0)
+        compiled.add_done_callback(functools.partial(_forget, key))
         self.compiled.append(compiled)
         if isinstance(lowered, jax.stages.Lowered):
             shapes = lowered.out_info
