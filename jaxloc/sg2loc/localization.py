@@ -264,9 +264,8 @@ def _call(program, *args):
     return program(*args)
 
 
-#: The compilations that warm-ups have queued and not finished, by :func:`_program_key`. JAX makes
-#: a call wait for a program another thread is compiling, but not for one still in the queue: a
-#: call that got there first would compile it again on the calling thread.
+#: Warm-ups' compilations not yet finished, by :func:`_program_key`. JAX makes a call wait for a
+#: program being compiled, not for one still queued: the call would compile it again itself.
 _QUEUED: dict[tuple, Future] = {}
 
 
