@@ -130,15 +130,16 @@ def test_cast_matches_a_float64_brute_force_on_adversarial_rays(engine):
 
 
 def test_packets_equal_single_rays_on_camera_rays(engine):
-    """A camera's rays (one origin, a 64 x 48 grid at 60 degrees) as packets of the CPU's width
-    and one by one, in a furnished room: the same faces (up to ties on shared edges) and t, u, v;
-    the packet path is really taken for such rays, and not for scattered ones."""
+    """A camera's rays (one origin, a 128 x 96 grid at 60 degrees: rows of 8 within the packets'
+    spread) as packets and one by one, in a furnished room: the same faces (up to ties on shared
+    edges) and t, u, v; the packet path is really taken for such rays, and not for scattered
+    ones."""
     from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
 
     scene = scene_graph(make_room(3, RoomConfig(num_objects=(8, 8))))
     tris = np.asarray(scene.triangles)
     lo, hi = np.asarray(scene.bounds)
-    camera = jaxloc.Camera.from_fov(64, 48, 60.0)
+    camera = jaxloc.Camera.from_fov(128, 96, 60.0)
     d_cam = np.asarray(camera.directions(jaxloc.stride_grid(camera, 1).uv))
     yaw = np.linspace(0, 2 * np.pi, 6, endpoint=False)
     rot = np.stack([[np.cos(yaw), -np.sin(yaw), 0 * yaw], [np.sin(yaw), np.cos(yaw), 0 * yaw],

@@ -250,7 +250,7 @@ def self_test_rays() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     grid = (np.arange(8) + 0.5) / 8 * 2.0 - 0.4  # x, y in [-0.275, 1.475]: hits and misses
     x, y = np.meshgrid(grid, grid + 0.013)
     target = np.stack([x.ravel(), y.ravel(), np.full(x.size, 2.5)], 1)
-    origin = np.array([0.3, 0.4, -3.0])  # far enough for the grid's rows to trace as packets
+    origin = np.array([0.3, 0.4, -25.0])  # far enough for the grid's rows to trace as packets
     camera_d = target - origin
     scattered = origin + 0.01 * np.arange(camera_d.shape[0])[:, None] * np.array([1, -1, 0])
     origins = np.concatenate([np.repeat(origin[None], len(target), 0), scattered])

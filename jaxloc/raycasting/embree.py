@@ -211,7 +211,7 @@ def implementation() -> str:
 
 def describe() -> str:
     """:func:`implementation` in words, with its threads (and packet width where native), e.g.
-    ``"native, 2 threads, packets of 16"``."""
+    ``"native, 2 threads, packets of 8"``."""
     kind = implementation()
     if kind == "native":
         engine = _native.load()

@@ -48,12 +48,17 @@ class RayHit(eqx.Module):
 
 
 def _safe_normalize(v: Array) -> tuple[Array, Array]:
-    """Unit vectors (..., 3) and a validity mask; zero/non-finite vectors give (0, 0, 1), False."""
-    sq = jnp.sum(v * v, axis=-1, keepdims=True)
+    """Unit vectors (..., 3) and a validity mask; zero/non-finite vectors give (0, 0, 1), False.
+
+    The coordinates are written out (no reduction over the last axis), so XLA:CPU normalises in
+    one fused pass with whatever produced ``v``.
+    """
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    sq = x * x + y * y + z * z
     ok = (sq > 0) & jnp.isfinite(sq)
-    safe = jnp.where(ok, v, jnp.array([0.0, 0.0, 1.0], v.dtype))
-    unit = safe * jax.lax.rsqrt(jnp.sum(safe * safe, axis=-1, keepdims=True))
-    return unit, ok[..., 0]
+    inv = jax.lax.rsqrt(jnp.where(ok, sq, 1.0))
+    fill = jnp.array([0.0, 0.0, 1.0], v.dtype)
+    return jnp.where(ok[..., None], v * inv[..., None], fill), ok
 
 
 @jax.jit  # one compiled fusion, eager or inside a jit: the same float32 rounding either way
@@ -226,7 +231,7 @@ def raycast(
     shape = jnp.broadcast_shapes(origins.shape, directions.shape)
     o = jnp.broadcast_to(origins, shape).reshape(-1, 3)
     d, ok = _safe_normalize(jnp.broadcast_to(directions, shape).reshape(-1, 3))
-    ok &= jnp.all(jnp.isfinite(o), axis=1)
+    ok &= jnp.isfinite(o[:, 0]) & jnp.isfinite(o[:, 1]) & jnp.isfinite(o[:, 2])
     d_search = jax.lax.stop_gradient(d)
     if engine != "jax" and (not differentiable or recomputes_hits(engine)):
         # The engines never trace the invalid rays, so their origins go in unmasked.

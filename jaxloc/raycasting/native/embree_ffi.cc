@@ -14,10 +14,11 @@
 //             status (*L, 1) int32        0 done, 1 failed (the results are then not to be used)
 //
 // with size-1 leading axes where an operand is not batched (jax's "expand_dims" vmap method).
-// Camera rays sharing an origin and pointing close together are traced as packets of the CPU's
-// native width (rtcIntersect16/8/4, coherent flag), any other ray alone (rtcIntersect1). The work is cut into chunks that a small
-// pool of native threads and the calling thread take in turn; no GIL, no Python. Scenes (robust,
-// watertight traversal, as the Python engine builds them) are kept in a bounded LRU cache.
+// Camera rays sharing an origin and pointing close together are traced as packets of 8 (of 4
+// where the CPU has no 8-wide kernels; rtcIntersect8/4, coherent flag), any other ray alone
+// (rtcIntersect1). The work is cut into chunks that a small pool of native threads and the
+// calling thread take in turn; no GIL, no Python. Scenes (robust, watertight traversal, as the
+// Python engine builds them) are kept in a bounded LRU cache.
 // No floating-point mode is changed.
 //
 // Embree is not linked: jaxloc_native_init() loads the library that the embreex wheel ships.
@@ -378,11 +379,10 @@ void CastOne(const RowRays& row, int64_t i, uint32_t* geom, uint32_t* prim) {
 std::atomic<int64_t> g_packets{0};  // packets traced so far (tests check the path is taken)
 
 // How far (chord of unit directions) a packet's rays may point from its first ray: wider packets
-// are traced ray by ray. Measured on benchmarks/engines.py's room (60k triangles, 2 threads, 960 x
-// 540 at 60 degrees): rows of 16 camera rays 20 pixels apart (a 0.35 chord) are 10-15 % faster as
-// packets, rows of patch centres 60 pixels apart (1.0) 20-25 % faster alone; 0.25 or 1.0 lose on
-// one of them.
-constexpr float kMaxPacketSpread = 0.5f;
+// are traced ray by ray. Measured on benchmarks/filter_step.py's room (41k triangles, 500 poses,
+// 960 x 540 at 60 degrees, 1 thread): rows of 8 rays 4 and 8 pixels apart (chords 0.03 and 0.07)
+// trace 1.7x and 1.2x faster as packets than alone, rows 20 pixels apart (0.17) 13 % slower.
+constexpr float kMaxPacketSpread = 0.1f;
 
 // Rays [begin, end) of a row, N at a time: a packet where the valid rays share one origin (a
 // camera's rays) and point within kMaxPacketSpread of each other, else one by one.
@@ -590,6 +590,8 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(jaxloc_embree_nearest_native, Nearest,
 
 extern "C" {
 
+int jaxloc_native_set_packet_width(int width);
+
 // Load Embree from `library` (a path), make its device, start `threads` - 1 workers (0: as many
 // CPUs as this process's affinity allows). Returns 0, or 1 with a message in `error`.
 int jaxloc_native_init(const char* library, int threads, char* error, int error_size) {
@@ -631,11 +633,9 @@ int jaxloc_native_init(const char* library, int threads, char* error, int error_
     std::snprintf(error, size_t(error_size), "%s", message.c_str());
     return 1;
   }
-  auto native = [](int property) { return g_api.get_device_property(g_api.device, property) > 0; };
-  g_api.packet_width = native(rtc::kPropertyNativeRay16)  ? 16
-                       : native(rtc::kPropertyNativeRay8) ? 8
-                       : native(rtc::kPropertyNativeRay4) ? 4
-                                                          : 1;
+  // Packets of 8 even where the CPU has 16-wide kernels: on an AVX-512 CPU (filter_step.py's
+  // room, 1 thread) rows of 16 rays 4 and 8 pixels apart traced 12 % and 21 % slower than of 8.
+  jaxloc_native_set_packet_width(8);
   if (threads <= 0) {
     cpu_set_t set;
     threads = sched_getaffinity(0, sizeof(set), &set) == 0 ? CPU_COUNT(&set) : 1;
@@ -650,7 +650,7 @@ int jaxloc_native_init(const char* library, int threads, char* error, int error_
 int jaxloc_native_packet_width() { return g_api.packet_width; }
 int jaxloc_native_threads() { return g_pool == nullptr ? 0 : g_pool->size(); }
 
-// Force a packet width (16, 8, 4 or 1) up to the native one; returns the width now in use.
+// Force a packet width (16, 8, 4 or 1) up to the CPU's widest; returns the width now in use.
 int jaxloc_native_set_packet_width(int width) {
   int native = 1;
   for (int w : {16, 8, 4}) {
