@@ -381,7 +381,7 @@ std::atomic<int64_t> g_packets{0};  // packets traced so far (tests check the pa
 // How far (chord of unit directions) a packet's rays may point from its first ray: wider packets
 // are traced ray by ray. Measured on benchmarks/filter_step.py's room (41k triangles, 500 poses,
 // 960 x 540 at 60 degrees, 1 thread): rows of 8 rays 4 and 8 pixels apart (chords 0.03 and 0.07)
-// trace 1.7x and 1.2x faster as packets than alone, rows 20 pixels apart (0.17) 13 % slower.
+// trace 1.7x and 1.2x faster as packets than alone, rows 20 pixels apart (0.17) 15 % slower.
 constexpr float kMaxPacketSpread = 0.1f;
 
 // Rays [begin, end) of a row, N at a time: a packet where the valid rays share one origin (a
