@@ -133,7 +133,7 @@ def test_packets_equal_single_rays_on_camera_rays(engine):
     """A camera's rays (one origin, a 128 x 96 grid at 60 degrees: rows of 8 within the packets'
     spread) as packets and one by one, in a furnished room: the same faces (up to ties on shared
     edges) and t, u, v; the packet path is really taken for such rays, and not for scattered
-    ones."""
+    ones or for a sparser grid."""
     from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
 
     scene = scene_graph(make_room(3, RoomConfig(num_objects=(8, 8))))
@@ -168,6 +168,9 @@ def test_packets_equal_single_rays_on_camera_rays(engine):
     before = engine.packets_traced()
     engine.cast(tris, scattered, directions)
     assert engine.packets_traced() == before
+    sparse = directions.reshape(6, 96, 128, 3)[:, :, ::4].reshape(-1, 3)  # 2 degrees apart
+    engine.cast(tris, origins[: len(sparse)], sparse)
+    assert engine.packets_traced() == before  # rows of 8 span 14 degrees: traced one by one
 
 
 def test_handler_matches_the_python_engine_in_raycast(engine, monkeypatch):
@@ -177,8 +180,8 @@ def test_handler_matches_the_python_engine_in_raycast(engine, monkeypatch):
     scene = random_scene(3, num_objects=12)
     rng = np.random.default_rng(1)
     lo, hi = np.asarray(scene.bounds)
-    origins = np.tile(((lo + hi) / 2).astype(np.float32), (2, 300, 1))  # batch 0: packets
-    origins[1] += rng.uniform(-0.5, 0.5, (300, 3)).astype(np.float32)  # batch 1: single rays
+    origins = np.tile(((lo + hi) / 2).astype(np.float32), (2, 300, 1))  # batch 0: one origin
+    origins[1] += rng.uniform(-0.5, 0.5, (300, 3)).astype(np.float32)  # batch 1: scattered
     tris = np.asarray(scene.triangles)[: scene.num_triangles]
     aims = tris[rng.integers(0, len(tris), (2, 300))]  # points on random triangles
     weights = rng.dirichlet(np.ones(3), (2, 300))[..., None]
