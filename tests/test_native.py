@@ -168,9 +168,57 @@ def test_packets_equal_single_rays_on_camera_rays(engine):
     before = engine.packets_traced()
     engine.cast(tris, scattered, directions)
     assert engine.packets_traced() == before
-    sparse = directions.reshape(6, 96, 128, 3)[:, :, ::4].reshape(-1, 3)  # 2 degrees apart
+    sparse = directions.reshape(6, 96, 128, 3)[:, :, ::6].reshape(-1, 3)  # 3 degrees apart
     engine.cast(tris, origins[: len(sparse)], sparse)
-    assert engine.packets_traced() == before  # rows of 8 span 14 degrees: traced one by one
+    assert engine.packets_traced() == before  # tiles span 9 degrees, rows 21: one by one
+
+
+def test_camera_rasters_cast_in_tiles_equal_single_rays(engine):
+    """Four views of a 45 x 13 raster (no multiple of the tile's 4 columns, an odd number of
+    lines; from four origins) back to back, then scattered rays, some rays invalid: the views are
+    cast in tiles of 2 lines (bands counted), with the same faces as single rays (up to ties on
+    shared edges) and the same t, u, v; every ray is cast once (an invalid one is a miss)."""
+    from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
+
+    if engine.packet_width == 1:
+        pytest.skip("this CPU has no packet kernels")
+    scene = scene_graph(make_room(5, RoomConfig(num_objects=(8, 8))))
+    tris = np.asarray(scene.triangles)
+    lo, hi = np.asarray(scene.bounds)
+    camera = jaxloc.Camera.from_fov(45, 13, 30.0)  # 0.67 degrees per pixel
+    grid = jaxloc.stride_grid(camera, 1)
+    assert grid.shape == (13, 45)
+    d_cam = np.asarray(camera.directions(grid.uv))
+    views, origins = [], []
+    for k, yaw in enumerate(np.linspace(0.3, 2 * np.pi + 0.3, 4, endpoint=False)):
+        c, s = np.cos(yaw), np.sin(yaw)
+        yawed = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+        to_world = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # camera z forward -> world x
+        views.append(d_cam @ (yawed @ to_world).T)
+        centre = (lo + hi) / 2 + [0.1 * k, -0.05 * k, 0.0]
+        origins.append(np.tile(centre, (len(d_cam), 1)))
+    rng = np.random.default_rng(1)
+    scattered = rng.normal(size=(100, 3))
+    views.append(scattered / np.linalg.norm(scattered, axis=1, keepdims=True))
+    origins.append((lo + hi) / 2 + rng.uniform(-0.5, 0.5, (100, 3)))
+    directions = np.concatenate(views).astype(np.float32)
+    origins = np.concatenate(origins).astype(np.float32)
+    valid = rng.random(len(origins)) > 0.05
+    bands = engine.raster_bands()
+    tiled = engine.cast(tris, origins, directions, valid)
+    assert engine.raster_bands() - bands == 4 * 7  # 13 lines: 6 bands of 2 and one of 1 per view
+    width = engine.packet_width
+    try:
+        engine.set_packet_width(1)
+        single = engine.cast(tris, origins, directions, valid)
+    finally:
+        engine.set_packet_width(width)
+    assert np.all(tiled[0][~valid] == -1) and np.all(np.isinf(tiled[1][~valid]))
+    assert np.mean(tiled[0][valid] >= 0) > 0.99  # a closed room
+    same = tiled[0] == single[0]
+    assert same.mean() >= 0.999
+    for a, b in zip(tiled[1:], single[1:], strict=True):
+        np.testing.assert_array_equal(a[same], b[same])
 
 
 def test_handler_matches_the_python_engine_in_raycast(engine, monkeypatch):

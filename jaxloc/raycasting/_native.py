@@ -185,6 +185,7 @@ class NativeEngine:
             pointer(ctypes.c_float), ctypes.c_char_p, ctypes.c_int,
         ]  # fmt: skip
         lib.jaxloc_native_packets_traced.restype = ctypes.c_int64
+        lib.jaxloc_native_raster_bands.restype = ctypes.c_int64
         self.packet_width = lib.jaxloc_native_packet_width()
         self.threads = lib.jaxloc_native_threads()
 
@@ -221,6 +222,11 @@ class NativeEngine:
     def packets_traced(self) -> int:
         """Packets the engine has traced in this process (rays cast together; a test knob)."""
         return self.lib.jaxloc_native_packets_traced()
+
+    def raster_bands(self) -> int:
+        """Bands of two raster lines (a camera's rows of rays) the engine has cast in tiles in
+        this process (a test knob)."""
+        return self.lib.jaxloc_native_raster_bands()
 
     def clear_cache(self) -> None:
         """Drop the engine's cached Embree scenes."""

@@ -16,8 +16,10 @@
 // with size-1 leading axes where an operand is not batched (jax's "expand_dims" vmap method).
 // Camera rays sharing an origin and pointing close together are traced as packets of 8 (of 4
 // where the CPU has no 8-wide kernels; rtcIntersect8/4, coherent flag), any other ray alone
-// (rtcIntersect1). The work is cut into chunks that a small pool of native threads and the
-// calling thread take in turn; no GIL, no Python. Scenes (robust, watertight traversal, as the
+// (rtcIntersect1); a camera's raster of rays (row-major lines, found from the directions) is
+// cast in tiles of 2 lines x 4 rays, so that a packet holds neighbours in both directions. The
+// work is cut into pieces that a small pool of native threads and the calling thread take in
+// turn; no GIL, no Python. Scenes (robust, watertight traversal, as the
 // Python engine builds them) are kept in a bounded LRU cache.
 // No floating-point mode is changed.
 //
@@ -329,29 +331,31 @@ constexpr float kStandInTriangle[9] = {0, 0, 1, 1, 0, 1, 0, 1, 1};
 constexpr float kStandInOrigin[3] = {0.25f, 0.25f, 0};
 constexpr float kStandInDirection[3] = {0, 0, 1};
 
-// The results of rays first .. first + n - 1 of a row (n <= N) from Embree's hit ids (`geom` the
+// The results of rays index[0 .. n - 1] of a row (n <= N) from Embree's hit ids (`geom` the
 // invalid id on a miss); lanes whose ray was not traced (`traced` false) are written as misses.
 template <int N>
-void StoreBlock(const RowRays& row, int64_t first, int n, const bool* traced,
+void StoreLanes(const RowRays& row, const int64_t* index, int n, const bool* traced,
                 const uint32_t* geom, const uint32_t* prim) {
   bool hit[N];
   for (int k = 0; k < n; ++k) {
     hit[k] = traced[k] && geom[k] != rtc::kInvalidGeometryId;
-    row.faces[first + k] = !hit[k] ? -1 : row.map->prefix ? int32_t(prim[k]) : row.map->ids[prim[k]];
+    row.faces[index[k]] = !hit[k]            ? -1
+                          : row.map->prefix ? int32_t(prim[k])
+                                            : row.map->ids[prim[k]];
   }
   if (row.t == nullptr) return;
   alignas(64) float c[9][N], o[3][N], d[3][N], t[N], u[N], v[N];
   for (int k = 0; k < N; ++k) {
     bool real = k < n && hit[k];
     const float* tri = real ? &row.map->corners[9 * size_t(prim[k])] : kStandInTriangle;
-    const float* ok = real ? row.origins + 3 * (first + k) : kStandInOrigin;
-    const float* dk = real ? row.directions + 3 * (first + k) : kStandInDirection;
+    const float* ok = real ? row.origins + 3 * index[k] : kStandInOrigin;
+    const float* dk = real ? row.directions + 3 * index[k] : kStandInDirection;
     for (int j = 0; j < 9; ++j) c[j][k] = tri[j];
     for (int a = 0; a < 3; ++a) o[a][k] = ok[a], d[a][k] = dk[a];
   }
   HitValues<N>(c, o, d, t, u, v);
   for (int k = 0; k < n; ++k) {
-    int64_t i = first + k;
+    int64_t i = index[k];
     row.t[i] = hit[k] ? t[k] : kInf;
     row.u[i] = hit[k] ? u[k] : 0.0f;
     row.v[i] = hit[k] ? v[k] : 0.0f;
@@ -377,97 +381,207 @@ void CastOne(const RowRays& row, int64_t i, uint32_t* geom, uint32_t* prim) {
 }
 
 std::atomic<int64_t> g_packets{0};  // packets traced so far (tests check the path is taken)
+std::atomic<int64_t> g_bands{0};    // bands of raster lines cast in tiles so far (likewise)
 
 // How far (chord of unit directions) a packet's rays may point from its first ray: wider packets
-// are traced ray by ray. Measured on benchmarks/filter_step.py's room (41k triangles, 500 poses,
-// 960 x 540 at 60 degrees, 1 thread): rows of 8 rays 4 and 8 pixels apart (chords 0.03 and 0.07)
-// trace 1.7x and 1.2x faster as packets than alone, rows 20 pixels apart (0.17) 15 % slower.
+// are traced ray by ray. Measured at 960 x 540 and 60 degrees, 1 thread, on filter_step.py's room
+// (41k triangles, 500 poses near one place): rows of 8 rays 4 and 8 pixels apart (chords 0.03 and
+// 0.07) traced 1.7x and 1.2x faster as packets than alone, rows 20 pixels apart (0.17) 15 %
+// slower; tiles of 2 x 4 rays 20 pixels apart (0.076) 11 % slower there, but 16 % faster on
+// engines.py's room (60k triangles, 2500 poses all over it), as the filter's first frame has them.
 constexpr float kMaxPacketSpread = 0.1f;
 
-// Rays [begin, end) of a row, N at a time: a packet where the valid rays share one origin (a
-// camera's rays) and point within kMaxPacketSpread of each other, else one by one.
+// Squared chord between the unit directions of rays a and b of a row.
+float Chord2(const RowRays& row, int64_t a, int64_t b) {
+  const float* x = row.directions + 3 * a;
+  const float* y = row.directions + 3 * b;
+  float dx = x[0] - y[0], dy = x[1] - y[1], dz = x[2] - y[2];
+  return dx * dx + dy * dy + dz * dz;
+}
+
+bool SameOrigin(const RowRays& row, int64_t a, int64_t b) {
+  return std::memcmp(row.origins + 3 * a, row.origins + 3 * b, 3 * sizeof(float)) == 0;
+}
+
+// Rays index[0 .. n - 1] of a row (n <= N): one packet where the valid ones share an origin (a
+// camera's rays) and point within kMaxPacketSpread of each other, else one by one. Counts the
+// packets in *packets.
 template <int N>
-void CastRange(const RowRays& row, int64_t begin, int64_t end, rtc::IntersectPacketFn packet) {
+void CastLanes(const RowRays& row, const int64_t* index, int n, rtc::IntersectPacketFn packet,
+               int64_t* packets) {
   alignas(64) int mask[N];
   bool traced[N];
   uint32_t geom[N], prim[N];
-  rtc::RayHitPacket<N> rays;
-  int64_t packets = 0;
-  rtc::IntersectArguments args{};
-  args.flags = rtc::kQueryCoherent;
-  args.feature_mask = rtc::kFeatureAll;
-  for (int64_t first = begin; first < end; first += N) {
-    int n = int(std::min<int64_t>(N, end - first));
-    int lead = -1;
-    bool shared_origin = true;
-    float spread = 0.0f;  // largest squared distance of a lane's unit direction to the first's
+  int lead = -1;
+  bool coherent = packet != nullptr;
+  for (int k = 0; k < n; ++k) {
+    traced[k] = row.valid[index[k]];
+    if (!traced[k]) continue;
+    if (lead < 0) {
+      lead = k;
+    } else if (coherent) {
+      coherent = SameOrigin(row, index[k], index[lead]) &&
+                 Chord2(row, index[k], index[lead]) <= kMaxPacketSpread * kMaxPacketSpread;
+    }
+  }
+  if (lead < 0) {
+    // nothing to trace: every lane is written as a miss
+  } else if (!coherent) {
     for (int k = 0; k < n; ++k) {
-      int64_t i = first + k;
-      traced[k] = row.valid[i];
-      if (!traced[k]) continue;
-      if (lead < 0) {
-        lead = k;
-      } else {
-        shared_origin &= std::memcmp(row.origins + 3 * i, row.origins + 3 * (first + lead),
-                                     3 * sizeof(float)) == 0;
-        const float* a = row.directions + 3 * i;
-        const float* b = row.directions + 3 * (first + lead);
-        float dx = a[0] - b[0], dy = a[1] - b[1], dz = a[2] - b[2];
-        spread = std::max(spread, dx * dx + dy * dy + dz * dz);
+      if (traced[k]) CastOne(row, index[k], &geom[k], &prim[k]);
+    }
+  } else {
+    rtc::RayHitPacket<N> rays;
+    rtc::IntersectArguments args{};
+    args.flags = rtc::kQueryCoherent;
+    args.feature_mask = rtc::kFeatureAll;
+    for (int k = 0; k < N; ++k) {
+      int64_t i = index[std::min(k, n - 1)];
+      mask[k] = (k < n && traced[k]) ? -1 : 0;
+      const float* o = row.origins + 3 * i;
+      const float* d = row.directions + 3 * i;
+      rays.org_x[k] = o[0], rays.org_y[k] = o[1], rays.org_z[k] = o[2], rays.tnear[k] = 0.0f;
+      rays.dir_x[k] = d[0], rays.dir_y[k] = d[1], rays.dir_z[k] = d[2], rays.time[k] = 0.0f;
+      rays.tfar[k] = kInf, rays.mask[k] = 0xffffffffu, rays.id[k] = uint32_t(k);
+      rays.flags[k] = 0;
+      rays.geomID[k] = rays.primID[k] = rays.instance_stack[0][k] = rtc::kInvalidGeometryId;
+    }
+    packet(mask, row.map->scene, &rays, &args);
+    ++*packets;
+    for (int k = 0; k < n; ++k) geom[k] = rays.geomID[k], prim[k] = rays.primID[k];
+  }
+  StoreLanes<N>(row, index, n, traced, geom, prim);
+}
+
+// A share of the work: `count` rays of batch row `row` from `begin`, either in their own order
+// (`width` 0) or `lines` raster lines of `width` rays each, cast band by band (2 lines) in tiles
+// of 2 lines x N/2 rays: packets of neighbours in both directions (on filter_step.py's room, 1
+// thread, tiles of 2 x 4 traced 11 % faster than rows of 8 at strides 4 and 8).
+struct Piece {
+  int64_t row;
+  int64_t begin;
+  int64_t count;
+  int64_t width;
+  int64_t lines;
+};
+
+//! Rays per piece (about; a multiple of every packet width where they go in their own order).
+constexpr int64_t kChunk = 512;
+// The narrowest and the widest raster line looked for. Narrower "rasters" keep their own order:
+// rays already in tile order read as lines of 4 (a 4 x 4 tile), and go as packets as they come.
+constexpr int64_t kMinWidth = 16;
+constexpr int64_t kMaxWidth = 8192;
+
+// The width of the raster (lines of camera rays, row-major) that starts at ray `first` of a row,
+// or 0 where there is none or its tiles of 2 x `columns` rays would not go as packets. A line
+// ends where the direction turns back; the next line starts beside its start.
+int64_t RasterWidth(const RowRays& row, int64_t first, int64_t end, int columns) {
+  if (end - first < 2 * columns + 2) return 0;
+  const float* a = row.directions + 3 * first;
+  float step[3] = {a[3] - a[0], a[4] - a[1], a[5] - a[2]};
+  int64_t last = std::min(end, first + kMaxWidth) - 1;
+  int64_t width = 0;
+  for (int64_t j = first + 1; j < last; ++j) {
+    const float* p = row.directions + 3 * j;
+    float dot = (p[3] - p[0]) * step[0] + (p[4] - p[1]) * step[1] + (p[5] - p[2]) * step[2];
+    if (!(dot > 0.0f)) {
+      width = j + 1 - first;
+      break;
+    }
+  }
+  if (width < std::max<int64_t>(kMinWidth, columns) || first + width + columns > end) return 0;
+  for (int64_t line = 0; line < 2; ++line) {
+    for (int64_t c = 0; c < columns; ++c) {
+      int64_t i = first + line * width + c;
+      if (!SameOrigin(row, i, first) ||
+          !(Chord2(row, i, first) <= kMaxPacketSpread * kMaxPacketSpread)) {
+        return 0;
       }
     }
-    bool coherent = shared_origin && spread <= kMaxPacketSpread * kMaxPacketSpread;
-    if (lead >= 0 && (!coherent || packet == nullptr)) {
-      for (int k = 0; k < n; ++k) {
-        if (traced[k]) CastOne(row, first + k, &geom[k], &prim[k]);
-      }
-    } else if (lead >= 0) {
-      for (int k = 0; k < N; ++k) {
-        int64_t i = first + std::min(k, n - 1);
-        mask[k] = (k < n && traced[k]) ? -1 : 0;
-        const float* o = row.origins + 3 * i;
-        const float* d = row.directions + 3 * i;
-        rays.org_x[k] = o[0], rays.org_y[k] = o[1], rays.org_z[k] = o[2], rays.tnear[k] = 0.0f;
-        rays.dir_x[k] = d[0], rays.dir_y[k] = d[1], rays.dir_z[k] = d[2], rays.time[k] = 0.0f;
-        rays.tfar[k] = kInf, rays.mask[k] = 0xffffffffu, rays.id[k] = uint32_t(k);
-        rays.flags[k] = 0;
-        rays.geomID[k] = rays.primID[k] = rays.instance_stack[0][k] = rtc::kInvalidGeometryId;
-      }
-      packet(mask, row.map->scene, &rays, &args);
-      ++packets;
-      for (int k = 0; k < n; ++k) geom[k] = rays.geomID[k], prim[k] = rays.primID[k];
+  }
+  return width;
+}
+
+// The pieces of rays [0, num_rays) of batch row `r`: rasters found from a view's first ray as
+// bands of 2 lines, everything else in pieces of kChunk rays in their own order. Which rays go
+// into a packet only changes the speed; every ray is cast exactly once either way.
+void PlanRow(const RowRays& row, int64_t r, int64_t num_rays, int columns,
+             std::vector<Piece>* pieces) {
+  int64_t i = 0;
+  while (i < num_rays) {
+    int64_t width = columns > 1 ? RasterWidth(row, i, num_rays, columns) : 0;
+    int64_t lines = width > 0 ? 1 : 0;
+    while (width > 0 && i + (lines + 1) * width <= num_rays &&
+           SameOrigin(row, i + lines * width, i) &&
+           Chord2(row, i + lines * width, i + (lines - 1) * width) <=
+               kMaxPacketSpread * kMaxPacketSpread) {
+      ++lines;
     }
-    StoreBlock<N>(row, first, n, traced, geom, prim);
+    if (lines >= 2) {
+      int64_t per_piece = std::max<int64_t>(2, kChunk / width / 2 * 2);  // whole bands
+      for (int64_t l = 0; l < lines; l += per_piece) {
+        int64_t count = std::min(per_piece, lines - l);
+        pieces->push_back({r, i + l * width, count * width, width, count});
+      }
+      g_bands.fetch_add((lines + 1) / 2, std::memory_order_relaxed);
+      i += lines * width;
+    } else {
+      int64_t count = std::min(kChunk, num_rays - i);
+      pieces->push_back({r, i, count, 0, 1});
+      i += count;
+    }
+  }
+}
+
+template <int N>
+void CastPiece(const RowRays& row, const Piece& piece, rtc::IntersectPacketFn packet) {
+  int64_t index[N];
+  int64_t packets = 0;
+  if (piece.width == 0) {
+    int64_t end = piece.begin + piece.count;
+    for (int64_t first = piece.begin; first < end; first += N) {
+      int n = int(std::min<int64_t>(N, end - first));
+      for (int k = 0; k < n; ++k) index[k] = first + k;
+      CastLanes<N>(row, index, n, packet, &packets);
+    }
+  } else {
+    constexpr int kColumns = N / 2;
+    for (int64_t line = 0; line < piece.lines; line += 2) {
+      int64_t band = std::min<int64_t>(2, piece.lines - line);
+      int64_t start = piece.begin + line * piece.width;
+      for (int64_t c0 = 0; c0 < piece.width; c0 += kColumns) {
+        int n = 0;
+        int64_t stop = std::min<int64_t>(c0 + kColumns, piece.width);
+        for (int64_t l = 0; l < band; ++l) {
+          for (int64_t c = c0; c < stop; ++c) index[n++] = start + l * piece.width + c;
+        }
+        CastLanes<N>(row, index, n, packet, &packets);
+      }
+    }
   }
   if (packets > 0) g_packets.fetch_add(packets, std::memory_order_relaxed);
 }
 
-void Cast(const RowRays& row, int64_t begin, int64_t end) {
+void Cast(const RowRays& row, const Piece& piece) {
   switch (g_api.packet_width) {
     case 16:
-      return CastRange<16>(row, begin, end, g_api.intersect16);
+      return CastPiece<16>(row, piece, g_api.intersect16);
     case 8:
-      return CastRange<8>(row, begin, end, g_api.intersect8);
+      return CastPiece<8>(row, piece, g_api.intersect8);
     case 4:
-      return CastRange<4>(row, begin, end, g_api.intersect4);
+      return CastPiece<4>(row, piece, g_api.intersect4);
     default:
-      return CastRange<4>(row, begin, end, nullptr);
+      return CastPiece<4>(row, piece, nullptr);
   }
 }
 
-//! Rays per chunk of work (a multiple of every packet width).
-constexpr int64_t kChunk = 512;
-
 // Cast every row's rays on the pool.
 void CastRows(const std::vector<RowRays>& rows, int64_t num_rays) {
-  int64_t per_row = (num_rays + kChunk - 1) / kChunk;
-  int64_t chunks = per_row * int64_t(rows.size());
-  if (chunks == 0) return;
-  g_pool->Run(chunks, [&](int64_t c) {
-    const RowRays& row = rows[c / per_row];
-    int64_t begin = (c % per_row) * kChunk;
-    Cast(row, begin, std::min(num_rays, begin + kChunk));
-  });
+  int columns = g_api.packet_width > 1 ? g_api.packet_width / 2 : 0;
+  std::vector<Piece> pieces;
+  for (size_t r = 0; r < rows.size(); ++r) PlanRow(rows[r], int64_t(r), num_rays, columns, &pieces);
+  if (pieces.empty()) return;
+  g_pool->Run(int64_t(pieces.size()), [&](int64_t c) { Cast(rows[pieces[c].row], pieces[c]); });
 }
 
 // ----------------------------------------------------------------------------------------------
@@ -670,6 +784,7 @@ int jaxloc_native_set_packet_width(int width) {
 
 void jaxloc_native_clear_cache() { g_scenes.Clear(); }
 int64_t jaxloc_native_packets_traced() { return g_packets.load(); }
+int64_t jaxloc_native_raster_bands() { return g_bands.load(); }
 int jaxloc_native_cached_scenes() { return int(g_scenes.Size()); }
 
 // The engine on plain arrays, without XLA (the load-time self-test): triangles (T, 3, 3),
