@@ -245,18 +245,19 @@ class NativeEngine:
 
 def self_test_rays() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The fixed self-test: two unit squares (4 triangles, one shared diagonal each) at z = 2
-    and z = 3 (the farther one offset), all-zero padding rows between; an 8 x 8 grid of camera
-    rays from one origin aimed at cell centres (packets), the same directions from scattered
-    origins (single rays) and some invalid rays. Returns ``(triangles, origins, directions,
-    valid)``."""
+    and z = 3 (the farther one offset), all-zero padding rows between; a raster of 8 lines of 16
+    camera rays from one origin aimed at cell centres (cast in tiles, as packets), the same
+    directions from scattered origins (single rays) and some invalid rays. Returns
+    ``(triangles, origins, directions, valid)``."""
     near = np.array([[[0, 0, 2], [1, 0, 2], [1, 1, 2]], [[0, 0, 2], [1, 1, 2], [0, 1, 2]]], float)
     far = near + np.array([0.5, 0.0, 1.0])
     padding = np.zeros((2, 3, 3))
     triangles = np.concatenate([near, padding, far]).astype(np.float32)
-    grid = (np.arange(8) + 0.5) / 8 * 2.0 - 0.4  # x, y in [-0.275, 1.475]: hits and misses
-    x, y = np.meshgrid(grid, grid + 0.013)
+    x_grid = (np.arange(16) + 0.5) / 16 * 2.0 - 0.4  # x in [-0.34, 1.54], y in [-0.275, 1.475]:
+    y_grid = (np.arange(8) + 0.5) / 8 * 2.0 - 0.4  # hits and misses
+    x, y = np.meshgrid(x_grid, y_grid + 0.013)  # 8 lines of 16
     target = np.stack([x.ravel(), y.ravel(), np.full(x.size, 2.5)], 1)
-    origin = np.array([0.3, 0.4, -25.0])  # far enough for the grid's rows to trace as packets
+    origin = np.array([0.3, 0.4, -25.0])  # far enough for the raster's tiles to go as packets
     camera_d = target - origin
     scattered = origin + 0.01 * np.arange(camera_d.shape[0])[:, None] * np.array([1, -1, 0])
     origins = np.concatenate([np.repeat(origin[None], len(target), 0), scattered])
@@ -292,13 +293,15 @@ def reference_hits(triangles, origins, directions, valid):
 
 def self_test(engine: NativeEngine) -> None:
     """Cast :func:`self_test_rays` with the engine; raise :class:`NativeUnavailable` unless
-    every face matches the float64 reference and t, u, v agree within 1e-5 (the camera rays as
-    packets where the CPU has them)."""
+    every face matches the float64 reference and t, u, v agree within 1e-5 (the camera raster in
+    tiles, as packets, where the CPU has packet kernels)."""
     rays = self_test_rays()
-    packets = engine.packets_traced()
+    packets, bands = engine.packets_traced(), engine.raster_bands()
     faces, t, u, v = engine.cast(*rays)
     if engine.packet_width > 1 and engine.packets_traced() == packets:
         raise NativeUnavailable("the self-test's camera rays were not traced as packets")
+    if engine.packet_width > 1 and engine.raster_bands() == bands:
+        raise NativeUnavailable("the self-test's camera raster was not cast in tiles")
     ref_faces, ref_t, ref_u, ref_v = reference_hits(*rays)
     hit = ref_faces >= 0
     if not (np.array_equal(faces, ref_faces) and 0.2 < hit.mean() < 0.9):
