@@ -129,6 +129,27 @@ def test_cast_matches_a_float64_brute_force_on_adversarial_rays(engine):
     assert np.all(np.isinf(t[faces < 0])) and np.all(u[faces < 0] == 0)
 
 
+def _camera_directions(camera, yaws) -> np.ndarray:
+    """(len(yaws), R, 3) float32 world directions of ``camera``'s full pixel grid, turned by each
+    yaw (camera z forward -> world x at yaw 0, camera y down -> world -z)."""
+    d_cam = np.asarray(camera.directions(jaxloc.stride_grid(camera, 1).uv))
+    c, s = np.cos(yaws), np.sin(yaws)
+    zero, one = np.zeros_like(yaws), np.ones_like(yaws)
+    yawed = np.stack([[c, -s, zero], [s, c, zero], [zero, zero, one]]).transpose(2, 0, 1)
+    to_world = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])
+    return np.einsum("nij,jk,rk->nri", yawed, to_world, d_cam).astype(np.float32)
+
+
+def _cast_single(engine, *rays) -> tuple[np.ndarray, ...]:
+    """``engine.cast(*rays)`` with every ray alone (no packets, no tiles)."""
+    width = engine.packet_width
+    try:
+        engine.set_packet_width(1)
+        return engine.cast(*rays)
+    finally:
+        engine.set_packet_width(width)
+
+
 def test_packets_equal_single_rays_on_camera_rays(engine):
     """A camera's rays (one origin, a 128 x 96 grid at 60 degrees: rows of 8 within the packets'
     spread) as packets and one by one, in a furnished room: the same faces (up to ties on shared
@@ -140,24 +161,15 @@ def test_packets_equal_single_rays_on_camera_rays(engine):
     tris = np.asarray(scene.triangles)
     lo, hi = np.asarray(scene.bounds)
     camera = jaxloc.Camera.from_fov(128, 96, 60.0)
-    d_cam = np.asarray(camera.directions(jaxloc.stride_grid(camera, 1).uv))
-    yaw = np.linspace(0, 2 * np.pi, 6, endpoint=False)
-    rot = np.stack([[np.cos(yaw), -np.sin(yaw), 0 * yaw], [np.sin(yaw), np.cos(yaw), 0 * yaw],
-                    [0 * yaw, 0 * yaw, 1 + 0 * yaw]]).transpose(2, 0, 1)  # fmt: skip
-    turn = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # camera z forward -> world x
-    directions = np.einsum("nij,jk,rk->nri", rot, turn, d_cam).reshape(-1, 3).astype(np.float32)
+    yaws = np.linspace(0, 2 * np.pi, 6, endpoint=False)
+    directions = _camera_directions(camera, yaws).reshape(-1, 3)
     origins = np.tile(((lo + hi) / 2).astype(np.float32), (len(directions), 1))
     if engine.packet_width == 1:
         pytest.skip("this CPU has no packet kernels")
     before = engine.packets_traced()
     packed = engine.cast(tris, origins, directions)
     assert engine.packets_traced() - before >= len(directions) // engine.packet_width // 2
-    width = engine.packet_width
-    try:
-        engine.set_packet_width(1)
-        single = engine.cast(tris, origins, directions)
-    finally:
-        engine.set_packet_width(width)
+    single = _cast_single(engine, tris, origins, directions)
     assert np.mean(packed[0] >= 0) > 0.99  # a closed room
     same = packed[0] == single[0]
     assert same.mean() >= 0.999
@@ -186,17 +198,12 @@ def test_camera_rasters_cast_in_tiles_equal_single_rays(engine):
     tris = np.asarray(scene.triangles)
     lo, hi = np.asarray(scene.bounds)
     camera = jaxloc.Camera.from_fov(45, 13, 30.0)  # 0.67 degrees per pixel
-    grid = jaxloc.stride_grid(camera, 1)
-    assert grid.shape == (13, 45)
-    d_cam = np.asarray(camera.directions(grid.uv))
-    views, origins = [], []
-    for k, yaw in enumerate(np.linspace(0.3, 2 * np.pi + 0.3, 4, endpoint=False)):
-        c, s = np.cos(yaw), np.sin(yaw)
-        yawed = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-        to_world = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # camera z forward -> world x
-        views.append(d_cam @ (yawed @ to_world).T)
-        centre = (lo + hi) / 2 + [0.1 * k, -0.05 * k, 0.0]
-        origins.append(np.tile(centre, (len(d_cam), 1)))
+    assert jaxloc.stride_grid(camera, 1).shape == (13, 45)
+    views = list(_camera_directions(camera, np.linspace(0.3, 2 * np.pi + 0.3, 4, endpoint=False)))
+    origins = [
+        np.tile((lo + hi) / 2 + [0.1 * k, -0.05 * k, 0.0], (view.shape[0], 1))
+        for k, view in enumerate(views)
+    ]
     rng = np.random.default_rng(1)
     scattered = rng.normal(size=(100, 3))
     views.append(scattered / np.linalg.norm(scattered, axis=1, keepdims=True))
@@ -207,12 +214,7 @@ def test_camera_rasters_cast_in_tiles_equal_single_rays(engine):
     bands = engine.raster_bands()
     tiled = engine.cast(tris, origins, directions, valid)
     assert engine.raster_bands() - bands == 4 * 7  # 13 lines: 6 bands of 2 and one of 1 per view
-    width = engine.packet_width
-    try:
-        engine.set_packet_width(1)
-        single = engine.cast(tris, origins, directions, valid)
-    finally:
-        engine.set_packet_width(width)
+    single = _cast_single(engine, tris, origins, directions, valid)
     assert np.all(tiled[0][~valid] == -1) and np.all(np.isinf(tiled[1][~valid]))
     assert np.mean(tiled[0][valid] >= 0) > 0.99  # a closed room
     same = tiled[0] == single[0]
