@@ -15,6 +15,7 @@ per particle, a few hundred particles, 5 frames) and compiled functions are shar
 from __future__ import annotations
 
 import dataclasses
+import re
 import threading
 import time
 
@@ -274,6 +275,33 @@ def test_step_does_not_retrace(initial, frames, scene, other_scene, step_config)
         np.asarray(other_info.particle_weights), np.asarray(same_input.particle_weights)
     )
     assert_no_nan((on_other, other_info), "step on the second map")
+
+
+#: The named scopes (jax.named_scope) of the step's parts: benchmarks/step_trace.py attributes
+#: the compiled step's time to its parts by them.
+STEP_SCOPES = (
+    "predict",
+    "match",
+    "score",
+    "rays",
+    "ray_prep",
+    "hit_search",
+    "hit_values",
+    "views",
+    "semantic_score",
+    "depth_score",
+    "color_score",
+    "update",
+)
+
+
+def test_step_operations_carry_the_scopes_of_its_parts(after_first, frames, scene, step_config):
+    state, _ = after_first
+    lowered = jax.jit(step).lower(jax.random.key(0), state, frame_at(frames, 1), scene, step_config)
+    names = re.findall(r'loc\("([^"]*)"', lowered.as_text(debug_info=True))
+    components = {c for name in names for c in name.split("/")}
+    for scope in STEP_SCOPES:
+        assert any(c == scope or c.endswith(f"({scope})") for c in components), scope
 
 
 @pytest.mark.slow

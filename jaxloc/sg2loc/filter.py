@@ -443,12 +443,16 @@ def step(
     (``frame.index == 0``) is not moved: its particles are the initial set. A non-finite
     ego-motion counts as zero motion and is flagged in ``info.motion_valid``.
     """
-    state, motion_valid = predict_step(
-        key, state, frame.index, frame.motion, config.sigma_trans, config.sigma_rot
-    )
-    match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
-    scores = score_active(state, frame, scene, config, match)
-    return update_step(key, state, scores, match, frame.index, motion_valid, config.update)
+    with jax.named_scope("predict"):
+        state, motion_valid = predict_step(
+            key, state, frame.index, frame.motion, config.sigma_trans, config.sigma_rot
+        )
+    with jax.named_scope("match"):
+        match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
+    with jax.named_scope("score"):
+        scores = score_active(state, frame, scene, config, match)
+    with jax.named_scope("update"):
+        return update_step(key, state, scores, match, frame.index, motion_valid, config.update)
 
 
 def run_pass(

@@ -186,11 +186,13 @@ def render_batch(
     order = _tile_order(grid, engine)
     num_rays = grid.uv.shape[0]
     rays = d_cam if order is None else d_cam[order]
-    d_world = _rotate(rotations, rays)  # (N, R, 3)
+    with jax.named_scope("rays"):
+        d_world = _rotate(rotations, rays)  # (N, R, 3)
     if order is None:  # cast in the grid's own order, nothing to permute
         origins = jnp.broadcast_to(poses[:, None, :3], d_world.shape)
         hits = raycast(scene, origins, d_world, engine=engine, differentiable=differentiable)
-        return jax.vmap(lambda h: _views(scene, h, d_cam, grid))(hits)
+        with jax.named_scope("views"):
+            return jax.vmap(lambda h: _views(scene, h, d_cam, grid))(hits)
     # The "jax" engine: whole packets of neighbouring rays (NaN-origin padding rays miss).
     padded = -(-num_rays // PACKET_SIZE) * PACKET_SIZE
     d_world = jnp.pad(d_world, ((0, 0), (0, padded - num_rays), (0, 0)), constant_values=1.0)
@@ -205,5 +207,6 @@ def render_batch(
         packet_size=PACKET_SIZE,
     )
     inverse = np.argsort(order)
-    hits = jax.tree.map(lambda a: a[:, :num_rays][:, inverse], hits)
-    return jax.vmap(lambda h: _views(scene, h, d_cam, grid))(hits)
+    with jax.named_scope("views"):
+        hits = jax.tree.map(lambda a: a[:, :num_rays][:, inverse], hits)
+        return jax.vmap(lambda h: _views(scene, h, d_cam, grid))(hits)

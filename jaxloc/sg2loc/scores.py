@@ -398,20 +398,23 @@ def particle_log_likelihood(
         rendered_rgb: (h, w, 3) rendered colours in [0, 1]; needed iff ``config.use_color``.
         observed_rgb: (h, w, 3) observed colours in [0, 1]; needed iff ``config.use_color``.
     """
-    semantic = semantic_score(match, rendered_object, config.semantic_variant)
+    with jax.named_scope("semantic_score"):
+        semantic = semantic_score(match, rendered_object, config.semantic_variant)
     depth = color = jnp.zeros((), jnp.float32)
     if config.use_depth:
         if rendered_depth is None or sensor_depth is None:
             raise ValueError("config.use_depth needs rendered_depth and sensor_depth")
-        depth = depth_score(
-            rendered_depth,
-            sensor_depth,
-            config.depth_variant,
-            config.depth_clip,
-            config.depth_miss_error,
-        ).score
+        with jax.named_scope("depth_score"):
+            depth = depth_score(
+                rendered_depth,
+                sensor_depth,
+                config.depth_variant,
+                config.depth_clip,
+                config.depth_miss_error,
+            ).score
     if config.use_color:
         if rendered_rgb is None or observed_rgb is None:
             raise ValueError("config.use_color needs rendered_rgb and observed_rgb")
-        color = color_score(rendered_rgb, observed_rgb, config.color_variant)
+        with jax.named_scope("color_score"):
+            color = color_score(rendered_rgb, observed_rgb, config.color_variant)
     return Scores(semantic, depth, color, log_likelihood(config, semantic, depth, color))
