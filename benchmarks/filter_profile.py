@@ -9,7 +9,8 @@ every later frame). Parts that run per render chunk are timed on one chunk of
 particles; each part is its own jitted function, timed (best of ``--repeats``, wall and process
 CPU) after compilation, so the parts' sum need not equal the whole step (the step fuses them): the
 ``rest`` row is the difference. The hit-search rays are the ones ``render_batch`` casts for the
-chunk's poses, without the frame's small tilt.
+chunk's poses, without the frame's small tilt. ``benchmarks/step_trace.py`` measures the parts
+inside the compiled step instead (XLA:CPU only).
 
     python benchmarks/filter_profile.py                      # strides 20, 8, 4
     python benchmarks/filter_profile.py --strides 20 --engine jax
