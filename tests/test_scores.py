@@ -194,6 +194,17 @@ def test_ssim_gradient_is_finite_on_flat_images_and_rejects_small_images():
     flat = jnp.full((8, 8, 3), 0.5)
     grad = jax.grad(lambda x: S.mean_ssim(x, flat))(flat)
     assert np.all(np.isfinite(np.asarray(grad)))
+    # against central differences in float64 of the numpy reference, on a textured pair
+    rng = np.random.default_rng(3)
+    x, y = rng.uniform(0.2, 0.8, (2, 9, 10, 3))
+    grad = np.asarray(
+        jax.grad(lambda a: S.mean_ssim(a, jnp.asarray(y, jnp.float32)))(jnp.asarray(x, jnp.float32))
+    )
+    for index in [(0, 0, 0), (4, 5, 1), (8, 9, 2), (3, 7, 0)]:
+        step = np.zeros_like(x)
+        step[index] = 1e-4
+        central = (numpy_ssim(x + step, y) - numpy_ssim(x - step, y)) / 2e-4
+        np.testing.assert_allclose(grad[index], central, rtol=1e-2, atol=1e-4)
     with pytest.raises(ValueError, match="at least 7x7"):
         S.mean_ssim(jnp.zeros((6, 9, 3)), jnp.zeros((6, 9, 3)))
     with pytest.raises(ValueError, match="equal shape"):
