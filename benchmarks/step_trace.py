@@ -97,11 +97,12 @@ def union_length(intervals: list[tuple[int, int]]) -> int:
     return total
 
 
-def attribute(trace_file: Path, parts: dict[str, str], runs: int) -> dict[str, tuple]:
-    """Per part: (wall s, operations) per step, from an XLA:CPU trace of ``runs`` steps; and
-    "all" for the union of every part."""
+def attribute(trace_file: Path, parts: dict[str, str], runs: int) -> tuple[dict, dict]:
+    """From an XLA:CPU trace of ``runs`` steps, per step: (wall s, operations) of each part and
+    of "all" (the union of every part), and the wall s of each operation (by name)."""
     intervals: dict[str, list] = {}
     counts: dict[str, int] = {}
+    operations: dict[str, list] = {}
     profile = jax.profiler.ProfileData.from_file(str(trace_file))
     for plane in profile.planes:
         for line in plane.lines:
@@ -110,13 +111,16 @@ def attribute(trace_file: Path, parts: dict[str, str], runs: int) -> dict[str, t
                 if part is None:
                     continue
                 span = (int(event.start_ns), int(event.end_ns))
+                operations.setdefault(event.name, []).append(span)
                 for key in (part, "all"):
                     intervals.setdefault(key, []).append(span)
                     counts[key] = counts.get(key, 0) + 1
-    return {
+    by_part = {
         key: (union_length(spans) * 1e-9 / runs, counts[key] // runs)
         for key, spans in intervals.items()
     }
+    by_operation = {name: union_length(spans) * 1e-9 / runs for name, spans in operations.items()}
+    return by_part, by_operation
 
 
 def trace_stride(scene, seq, poses_gt, stride: int, round_index: int, args) -> dict:
@@ -149,7 +153,9 @@ def trace_stride(scene, seq, poses_gt, stride: int, round_index: int, args) -> d
         with jax.profiler.trace(folder):
             traced = [run() for _ in range(args.traced)]
         trace_file = next(Path(folder).rglob("*.xplane.pb"))
-        parts = attribute(trace_file, operation_parts(compiled.as_text()), args.traced)
+        names = operation_parts(compiled.as_text())
+        parts, operations = attribute(trace_file, names, args.traced)
+    heaviest = sorted(operations.items(), key=lambda item: -item[1])[: args.top]
     return {
         "stride": stride,
         "rays": int(grid.uv.shape[0]),
@@ -157,6 +163,7 @@ def trace_stride(scene, seq, poses_gt, stride: int, round_index: int, args) -> d
         "untraced": untraced,
         "traced": statistics.mean(traced),
         "parts": parts,
+        "heaviest": [(name, names[name], wall) for name, wall in heaviest],
     }
 
 
@@ -193,6 +200,9 @@ def report(args, info: dict, load: tuple[float, float], results: list[dict]) -> 
             f"| idle (no operation running) | {wall - covered:.3f} | "
             f"{100 * (wall - covered) / wall:.0f} % | - |"
         )
+        if r["heaviest"]:
+            lines += ["", "| operation | part | wall s |", "|---|---|---|"]
+            lines += [f"| `{n}` | {part} | {w:.3f} |" for n, part, w in r["heaviest"]]
     return "\n".join(lines)
 
 
@@ -206,6 +216,7 @@ def main(argv=None) -> None:
     parser.add_argument("--chunk", type=int, default=None, help="StepConfig.particle_chunk")
     parser.add_argument("--repeats", type=int, default=5, help="untraced steps timed")
     parser.add_argument("--traced", type=int, default=2, help="steps traced")
+    parser.add_argument("--top", type=int, default=0, help="list the heaviest operations")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     if jax.default_backend() != "cpu":
