@@ -11,7 +11,8 @@ the wall time during which one of its operations ran (the union of their interva
 threads), per step. An operation is one event however many threads work on it (XLA splits a large
 loop over its thread pool, the engine's FFI call casts on its own native threads as well), so the
 parts' walls add up to the step's, less ``idle``: the step's traced wall minus the union of every
-part (thunk scheduling, loop control, waits). Same data and states as ``filter_profile.py``.
+part (thunk scheduling, loop control, waits). The episode is ``filter_step.py``'s (3 frames);
+each stride starts from its round's particles and is timed on frame 1, after a step on frame 0.
 
     python benchmarks/step_trace.py                 # strides 20, 8, 4
     python benchmarks/step_trace.py --strides 4 --repeats 5
@@ -221,7 +222,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     if jax.default_backend() != "cpu":
         parser.error("the trace is attributed for XLA:CPU only; use filter_profile.py elsewhere")
-    args.frames = 2
+    args.frames = 3  # the episode of filter_step.py, whose frame 1 the step is timed on
     with tempfile.TemporaryDirectory() as folder:
         info = make_data(args, Path(folder))
         scene, seq, poses_gt = load_data(Path(folder), args.width, args.height)
