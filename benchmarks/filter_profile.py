@@ -63,9 +63,10 @@ def timed_jit(fn, args, repeats):
     return best_of(lambda: jax.block_until_ready(compiled(*args)), repeats)
 
 
-def profile_stride(scene, seq, poses_gt, stride, round_index, args):
-    rows, cols = seq.patch_shape
-    grid = stride_grid(seq.camera, stride, rows, cols)
+def stepped_state(scene, seq, poses_gt, stride: int, round_index: int, args):
+    """The step of one round's stride: its config, the compiled step, the state after a step on
+    frame 0 from the round's initial particles (the KLD count is then active), and frame 1."""
+    grid = stride_grid(seq.camera, stride, *seq.patch_shape)
     region = Region.of_scene(scene)
     config = StepConfig(
         camera=seq.camera,
@@ -82,6 +83,14 @@ def profile_stride(scene, seq, poses_gt, stride, round_index, args):
     frame0, frame1 = (jax.tree.map(lambda a, t=t: a[t], frames) for t in (0, 1))
     compiled_step = jax.jit(step).lower(key, state, frame0, scene, config).compile()
     state, _ = compiled_step(jax.random.key(1), state, frame0, scene, config)
+    return config, compiled_step, state, frame1
+
+
+def profile_stride(scene, seq, poses_gt, stride, round_index, args):
+    config, compiled_step, state, frame1 = stepped_state(
+        scene, seq, poses_gt, stride, round_index, args
+    )
+    grid, region = config.grid, config.region
     step_time = best_of(
         lambda: jax.block_until_ready(
             compiled_step(jax.random.key(2), state, frame1, scene, config)

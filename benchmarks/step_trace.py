@@ -33,13 +33,10 @@ import jax
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from filter_step import FULL_PARTICLES, initial_state, load_data, make_data  # noqa: E402
+from filter_profile import stepped_state  # noqa: E402
+from filter_step import FULL_PARTICLES, load_data, make_data  # noqa: E402
 
-from jaxloc.camera import stride_grid  # noqa: E402
 from jaxloc.raycasting.engines import resolve_engine  # noqa: E402
-from jaxloc.sg2loc.filter import Region, StepConfig, frames_on_grid, step  # noqa: E402
-from jaxloc.sg2loc.resampling import KLDConfig  # noqa: E402
-from jaxloc.sg2loc.scores import ObservationConfig  # noqa: E402
 
 #: (named scope, part) in the order they are looked for: an operation belongs to the first scope
 #: found in its name path (scopes nest: ``score`` holds the others of the chunk loop).
@@ -125,23 +122,7 @@ def attribute(trace_file: Path, parts: dict[str, str], runs: int) -> tuple[dict,
 
 
 def trace_stride(scene, seq, poses_gt, stride: int, round_index: int, args) -> dict:
-    rows, cols = seq.patch_shape
-    grid = stride_grid(seq.camera, stride, rows, cols)
-    region = Region.of_scene(scene)
-    config = StepConfig(
-        camera=seq.camera,
-        grid=grid,
-        observation=ObservationConfig(),
-        kld=KLDConfig(),
-        region=region,
-        engine=args.engine,
-        particle_chunk=args.chunk,
-    )
-    state = initial_state(jax.random.key(0), args.particles, round_index, region, poses_gt[0])
-    frames = frames_on_grid(seq, grid)
-    frame0, frame1 = (jax.tree.map(lambda a, t=t: a[t], frames) for t in (0, 1))
-    compiled = jax.jit(step).lower(jax.random.key(0), state, frame0, scene, config).compile()
-    state, _ = compiled(jax.random.key(1), state, frame0, scene, config)
+    config, compiled, state, frame1 = stepped_state(scene, seq, poses_gt, stride, round_index, args)
 
     def run():
         start = time.perf_counter()
@@ -159,7 +140,7 @@ def trace_stride(scene, seq, poses_gt, stride: int, round_index: int, args) -> d
     heaviest = sorted(operations.items(), key=lambda item: -item[1])[: args.top]
     return {
         "stride": stride,
-        "rays": int(grid.uv.shape[0]),
+        "rays": int(config.grid.uv.shape[0]),
         "active": int(np.sum(np.asarray(state.active))),
         "untraced": untraced,
         "traced": statistics.mean(traced),
