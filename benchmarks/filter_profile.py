@@ -185,14 +185,19 @@ def profile_stride(scene, seq, poses_gt, stride, round_index, args):
     }
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_step_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of the profiled step: particles, frame size, strides, engine, chunk."""
     parser.add_argument("--particles", type=int, default=FULL_PARTICLES)
     parser.add_argument("--width", type=int, default=960)
     parser.add_argument("--height", type=int, default=540)
     parser.add_argument("--strides", default="20,8,4")
     parser.add_argument("--engine", default="auto")
     parser.add_argument("--chunk", type=int, default=None, help="StepConfig.particle_chunk")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_step_arguments(parser)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(

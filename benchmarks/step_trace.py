@@ -33,8 +33,8 @@ import jax
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from filter_profile import stepped_state  # noqa: E402
-from filter_step import FULL_PARTICLES, load_data, make_data  # noqa: E402
+from filter_profile import add_step_arguments, stepped_state  # noqa: E402
+from filter_step import load_data, make_data  # noqa: E402
 
 from jaxloc.raycasting.engines import resolve_engine  # noqa: E402
 
@@ -190,12 +190,7 @@ def report(args, info: dict, load: tuple[float, float], results: list[dict]) -> 
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--particles", type=int, default=FULL_PARTICLES)
-    parser.add_argument("--width", type=int, default=960)
-    parser.add_argument("--height", type=int, default=540)
-    parser.add_argument("--strides", default="20,8,4")
-    parser.add_argument("--engine", default="auto")
-    parser.add_argument("--chunk", type=int, default=None, help="StepConfig.particle_chunk")
+    add_step_arguments(parser)
     parser.add_argument("--repeats", type=int, default=5, help="untraced steps timed")
     parser.add_argument("--traced", type=int, default=2, help="steps traced")
     parser.add_argument("--top", type=int, default=0, help="list the heaviest operations")
