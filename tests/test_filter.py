@@ -29,10 +29,19 @@ from jaxloc.camera import stride_grid
 from jaxloc.geometry import compose_yaw, ego_motion, wrap_angle
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc import SG2LocConfig, SG2LocResult, carry_back, localization, localize
-from jaxloc.sg2loc.filter import Frame, Region, StepConfig, frames_on_grid, run_pass, step
+from jaxloc.sg2loc.filter import (
+    Frame,
+    Region,
+    StepConfig,
+    default_chunk_rays,
+    frames_on_grid,
+    run_pass,
+    step,
+)
 from jaxloc.sg2loc.particles import ParticleState, init_region
 from jaxloc.sg2loc.resampling import KLDConfig
 from jaxloc.sg2loc.scores import DEPTH_MAX, SEMANTIC_MAX, ObservationConfig
+from jaxloc.sharding import device_mesh
 from jaxloc.synthetic.indoor import EpisodeConfig, RoomConfig, SensorConfig, make_episode
 
 #: A small room with coarse meshes (~6k triangles) and 160x90 images (9x16 patches of 10 px).
@@ -302,6 +311,19 @@ def test_step_operations_carry_the_scopes_of_its_parts(after_first, frames, scen
     components = {c for name in names for c in name.split("/")}
     for scope in STEP_SCOPES:
         assert any(c == scope or c.endswith(f"({scope})") for c in components), scope
+
+
+def test_default_chunk_follows_the_platform(step_config):
+    """About 2^18 rays a chunk on a CPU (the test's backend, or a mesh of CPU devices), 2^20 on
+    a GPU; a particle at least, the capacity at most."""
+    rays = step_config.grid.uv.shape[0]
+    assert default_chunk_rays("cpu") == 2**18 and default_chunk_rays("gpu") == 2**20
+    assert step_config.chunk_size(10**7) == 2**18 // rays
+    on_mesh = dataclasses.replace(step_config, mesh=device_mesh(jax.devices()[:1]))
+    assert on_mesh.chunk_size(10**7) == 2**18 // rays
+    assert step_config.chunk_size(3) == 3
+    wide = dataclasses.replace(step_config, grid=stride_grid(step_config.camera, 1))
+    assert wide.chunk_size(10**7) == max(1, 2**18 // wide.grid.uv.shape[0])
 
 
 @pytest.mark.slow

@@ -70,9 +70,20 @@ class Region(eqx.Module):
         return Region(bounds[0, :2], bounds[1, :2], bounds[0, 2])
 
 
-#: Rays rendered at once by default (``StepConfig.particle_chunk``): 2^20 rays keep the step's
-#: working set near 1 GiB at any stride (benchmarks/results/filter_profile_cpu.md).
+#: Rays rendered at once by default (``StepConfig.particle_chunk``) on a GPU: 2^20 rays keep the
+#: step's working set near 1 GiB at any stride (benchmarks/results/filter_profile_cpu.md).
 CHUNK_RAYS = 2**20
+
+#: The same on XLA:CPU. Chunks of 2^18 rays keep the rays' intermediate arrays nearer the caches
+#: and waste less on the partly filled last chunk: at 960 x 540, 2500 particles, the paper's
+#: strides took 1.71-1.78 s per frame against 2.03-2.05 s with 2^20 and 1.82 s with 2^19
+#: (benchmarks/results/filter_step_cpu.md, session 26).
+CPU_CHUNK_RAYS = 2**18
+
+
+def default_chunk_rays(platform: str) -> int:
+    """Rays rendered at once by default on devices of ``platform`` ("cpu", "gpu", "cuda", ...)."""
+    return CPU_CHUNK_RAYS if platform == "cpu" else CHUNK_RAYS
 
 
 def check_particle_chunk(chunk: int | None) -> None:
@@ -99,8 +110,9 @@ class StepConfig(eqx.Module):
         particle_chunk: particles rendered and scored together (static). Only the chunks that
             hold active particles are rendered (a loop over them), so the step's time follows the
             active count and its peak memory ``particle_chunk`` x rays per particle. ``None``
-            picks ``CHUNK_RAYS // rays per particle`` (at least 1); a value >= the particle
-            capacity renders every slot at once (no loop).
+            picks about 2^18 rays a chunk on a CPU and 2^20 on other devices
+            (:func:`default_chunk_rays`; at least 1 particle); a value >= the particle capacity
+            renders every slot at once (no loop).
         verdict: the thresholds of the per-frame verdict (:mod:`jaxloc.sg2loc.verdict`).
         mesh: a 1-D device mesh the particle buffer is split over (static; set by
             :mod:`jaxloc.sharding` and ``localize(..., mesh=)``). Each device then renders and
@@ -148,10 +160,14 @@ class StepConfig(eqx.Module):
         )
 
     def chunk_size(self, capacity: int) -> int:
-        """Particles per chunk for a buffer of ``capacity`` slots (static)."""
+        """Particles per chunk for a buffer of ``capacity`` slots (static), by default about
+        :func:`default_chunk_rays` rays for the platform of ``mesh`` or else JAX's default
+        backend."""
         if self.particle_chunk is not None:
             return min(self.particle_chunk, capacity)
-        return max(1, min(CHUNK_RAYS // self.grid.uv.shape[0], capacity))
+        device = None if self.mesh is None else self.mesh.devices.flat[0]
+        rays = default_chunk_rays(jax.default_backend() if device is None else device.platform)
+        return max(1, min(rays // self.grid.uv.shape[0], capacity))
 
 
 class Frame(eqx.Module):

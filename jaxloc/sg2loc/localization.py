@@ -78,7 +78,7 @@ class SG2LocConfig(eqx.Module):
         engine: nearest-hit engine of the rendering (static; "auto", "jax", "embree" or "warp",
             see :func:`jaxloc.raycast`).
         particle_chunk: particles rendered together (static; ``StepConfig.particle_chunk``:
-            None sizes chunks to ``jaxloc.sg2loc.filter.CHUNK_RAYS`` rays).
+            None sizes chunks to :func:`jaxloc.sg2loc.filter.default_chunk_rays` rays).
         verdict: thresholds of the per-frame verdict
             (:class:`~jaxloc.sg2loc.verdict.VerdictConfig`; None: the preset for whether the
             sequence's depth is used, :func:`~jaxloc.sg2loc.verdict.default_verdict`).
