@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from jaxloc import Sequence
-from jaxloc.camera import stride_grid
+from jaxloc.camera import Camera, stride_grid
 from jaxloc.geometry import compose_yaw, ego_motion, wrap_angle
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc import SG2LocConfig, SG2LocResult, carry_back, localization, localize
@@ -322,8 +322,9 @@ def test_default_chunk_follows_the_platform(step_config):
     on_mesh = dataclasses.replace(step_config, mesh=device_mesh(jax.devices()[:1]))
     assert on_mesh.chunk_size(10**7) == 2**18 // rays
     assert step_config.chunk_size(3) == 3
-    wide = dataclasses.replace(step_config, grid=stride_grid(step_config.camera, 1))
-    assert wide.chunk_size(10**7) == max(1, 2**18 // wide.grid.uv.shape[0])
+    camera = Camera.from_fov(1024, 512, 60.0)  # 2^19 rays a view: one particle a chunk
+    wide = dataclasses.replace(step_config, camera=camera, grid=stride_grid(camera, 1))
+    assert wide.chunk_size(10**7) == 1
 
 
 @pytest.mark.slow

@@ -76,8 +76,8 @@ CHUNK_RAYS = 2**20
 
 #: The same on XLA:CPU. Chunks of 2^18 rays keep the rays' intermediate arrays nearer the caches
 #: and waste less on the partly filled last chunk: at 960 x 540, 2500 particles, the paper's
-#: strides took 1.71-1.78 s per frame against 2.03-2.05 s with 2^20 and 1.82 s with 2^19
-#: (benchmarks/results/filter_step_cpu.md, session 26).
+#: strides took 1.59-1.68 s per frame against 1.79-2.01 s with 2^20, paired; 2^19 and 2^17 were
+#: slower than 2^18 (benchmarks/results/filter_step_cpu.md, session 26).
 CPU_CHUNK_RAYS = 2**18
 
 
