@@ -18,10 +18,10 @@ through the frames, blocking on every result. Times are wall clock AND process C
 ``jax.devices()[0].memory_stats()['peak_bytes_in_use']``. Round 0 starts from the paper's floor
 initialisation; later rounds from the paper's boxes around the true first pose (half-widths 0.8
 and 0.4 m). Only the active particles are rendered, in chunks of ``--chunk`` particles (default:
-``jaxloc.sg2loc.filter.CHUNK_RAYS`` rays per chunk; ``--chunk 0`` renders every slot in one call,
-the behaviour before chunking), with the nearest-hit engine ``--engine``. With ``--particles`` or
-the image size reduced, the table adds a column scaled linearly to the full size, labelled as an
-estimate.
+``jaxloc.sg2loc.filter.default_chunk_rays`` rays per chunk; ``--chunk 0`` renders every slot in
+one call, the behaviour before chunking), with the nearest-hit engine ``--engine``. With
+``--particles`` or the image size reduced, the table adds a column scaled linearly to the full
+size, labelled as an estimate.
 
     python benchmarks/filter_step.py                                   # the full benchmark
     python benchmarks/filter_step.py --particles 200 --frames 2        # a quick run
@@ -69,7 +69,7 @@ def parse_args(argv=None) -> argparse.Namespace:
         "--chunk",
         type=int,
         default=None,
-        help="particles per render chunk (default: by CHUNK_RAYS; 0: every slot in one call)",
+        help="particles per render chunk (default: by default_chunk_rays; 0: every slot at once)",
     )
     parser.add_argument(
         "--min-particles",
