@@ -11,8 +11,11 @@ Scene and rays are those of ``benchmarks/raycast.py``: the synthetic benchmark r
 
 ``raycast`` rows cast the flat, pose-major rays (nearest hit only; ``t``, barycentric coordinates
 and object computed by JAX); ``render_batch`` rows render the views as the filter does (tile order,
-depth, colour, patch majority). The peer gets the same flat rays in one ``run`` call (one thread).
-Agreement is the share of rays whose hit triangle equals the peer's.
+depth, colour, patch majority). With the native Embree engine, two ``native handler alone`` rows
+time its FFI call by itself on rays made ready beforehand (faces only; with t, u, v), which
+splits ``raycast``'s time into the call and JAX's passes around it. The peer gets the same flat
+rays in one ``run`` call (one thread). Agreement is the share of rays whose hit triangle equals
+the peer's.
 
     python benchmarks/engines.py                        # 2500 poses, both ray sets
     python benchmarks/engines.py --poses 200 --grids stride
@@ -112,6 +115,19 @@ def variants(names):
     return rows
 
 
+def handler_rows(scene, origins, directions):
+    """The native handler's FFI call alone, on rays made ready beforehand (unit directions, all
+    valid), faces only and with the t, u, v of ``differentiable=False``: what ``raycast``'s own
+    JAX passes around the call cost, and the values inside it (the breakdown of issue 35)."""
+    unit = directions / np.linalg.norm(directions, axis=-1, keepdims=True)
+    args = (scene.triangles, origins, unit.astype(np.float32), np.ones(origins.shape[0], bool))
+    rows = []
+    for label, search in (("faces only", embree.nearest_triangle), ("t, u, v", embree.nearest_hit)):
+        compile_s, call = compiled_call(search, args)
+        rows.append({"what": f"native handler alone ({label})", "compile": compile_s, "call": call})
+    return rows
+
+
 def run_grid(scene, peer, poses, camera, grid, names, repeats, tiles=False):
     """Every row of one ray set, timed round-robin (``repeats`` rounds, best of each row), so no
     row is favoured by running first or last. ``tiles``: each pose's rays 4 x 4 tile by tile (as
@@ -131,6 +147,8 @@ def run_grid(scene, peer, poses, camera, grid, names, repeats, tiles=False):
         if width is not None:
             call = with_packet_width(call, width)
         rows.append({"what": label, "compile": compile_s, "call": call})
+    if embree.implementation() == "native" and "embree" in names:
+        rows += handler_rows(scene, origins, directions)
     for engine in names:
         render = functools.partial(jaxloc.render_batch, engine=engine)
         compile_s, call = compiled_call(render, (scene, poses, camera, grid))
