@@ -165,9 +165,9 @@ class StepConfig(eqx.Module):
         backend."""
         if self.particle_chunk is not None:
             return min(self.particle_chunk, capacity)
-        device = None if self.mesh is None else self.mesh.devices.flat[0]
-        rays = default_chunk_rays(jax.default_backend() if device is None else device.platform)
-        return max(1, min(rays // self.grid.uv.shape[0], capacity))
+        mesh = self.mesh
+        platform = jax.default_backend() if mesh is None else mesh.devices.flat[0].platform
+        return max(1, min(default_chunk_rays(platform) // self.grid.uv.shape[0], capacity))
 
 
 class Frame(eqx.Module):
