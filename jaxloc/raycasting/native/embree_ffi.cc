@@ -308,14 +308,15 @@ constexpr double kDetEps = 1e-12;
 // them with in JAX, in double precision (never less accurate than JAX's float32 recompute): t in
 // the plane form n . (v0 - o) / (n . d), n = e1 x e2 (far more accurate than Embree's own t for
 // small, distant triangles, which can be ~1e-4 relative off), u, v by Moller-Trumbore, clipped to
-// [0, 1]. c: the triangles' 9 coordinates (v0, v1, v2), o, d: the rays, each (coordinate, lane).
+// [0, 1]. c: the triangles' 9 coordinates (v0, v1, v2), each (coordinate, lane); o, d: the rays,
+// an array of N lanes for each coordinate (x, y, z).
 // The inputs are widened to double in loops of their own and the arithmetic is branch-free over
 // the lanes, so that the compiler vectorizes both (GCC 12 vectorizes no loop that mixes float
 // loads with double arithmetic: 10.3 ns a ray so; the guarded divisions need -fno-trapping-math,
 // which _native.py builds with).
 template <int N>
-JAXLOC_TARGET_CLONES void HitValues(const float (&c)[9][N], const float (&o)[3][N],
-                                    const float (&d)[3][N], float* t, float* u, float* v) {
+JAXLOC_TARGET_CLONES void HitValues(const float (&c)[9][N], const float* const (&o)[3],
+                                    const float* const (&d)[3], float* t, float* u, float* v) {
   alignas(64) double corner[9][N], origin[3][N], direction[3][N];
   for (int j = 0; j < 9; ++j) {
     for (int k = 0; k < N; ++k) corner[j][k] = c[j][k];
@@ -353,9 +354,11 @@ constexpr float kStandInDirection[3] = {0, 0, 1};
 
 // The results of rays index[0 .. n - 1] of a row (n <= N) from Embree's hit ids (`geom` the
 // invalid id on a miss); lanes whose ray was not traced (`traced` false) are written as misses.
+// `packet`: the rays as they were traced in a packet (its lanes hold rays index[0 .. n - 1]), or
+// null for rays traced alone.
 template <int N>
 void StoreLanes(const RowRays& row, const int64_t* index, int n, const bool* traced,
-                const uint32_t* geom, const uint32_t* prim) {
+                const uint32_t* geom, const uint32_t* prim, const rtc::RayHitPacket<N>* packet) {
   bool hit[N];
   for (int k = 0; k < n; ++k) {
     hit[k] = traced[k] && geom[k] != rtc::kInvalidGeometryId;
@@ -368,12 +371,24 @@ void StoreLanes(const RowRays& row, const int64_t* index, int n, const bool* tra
   for (int k = 0; k < N; ++k) {
     bool real = k < n && hit[k];
     const float* tri = real ? &row.map->corners[9 * size_t(prim[k])] : kStandInTriangle;
-    const float* ok = real ? row.origins + 3 * index[k] : kStandInOrigin;
-    const float* dk = real ? row.directions + 3 * index[k] : kStandInDirection;
     for (int j = 0; j < 9; ++j) c[j][k] = tri[j];
-    for (int a = 0; a < 3; ++a) o[a][k] = ok[a], d[a][k] = dk[a];
   }
-  HitValues<N>(c, o, d, t, u, v);
+  if (packet != nullptr) {  // the lanes' rays as the packet holds them (the lanes without a hit
+                            // hold real rays too, or copies of one; their values are dropped)
+    const float* const origin[3] = {packet->org_x, packet->org_y, packet->org_z};
+    const float* const direction[3] = {packet->dir_x, packet->dir_y, packet->dir_z};
+    HitValues<N>(c, origin, direction, t, u, v);
+  } else {
+    for (int k = 0; k < N; ++k) {
+      bool real = k < n && hit[k];
+      const float* ok = real ? row.origins + 3 * index[k] : kStandInOrigin;
+      const float* dk = real ? row.directions + 3 * index[k] : kStandInDirection;
+      for (int a = 0; a < 3; ++a) o[a][k] = ok[a], d[a][k] = dk[a];
+    }
+    const float* const origin[3] = {o[0], o[1], o[2]};
+    const float* const direction[3] = {d[0], d[1], d[2]};
+    HitValues<N>(c, origin, direction, t, u, v);
+  }
   for (int k = 0; k < n; ++k) {
     int64_t i = index[k];
     row.t[i] = hit[k] ? t[k] : kInf;
@@ -424,11 +439,12 @@ bool SameOrigin(const RowRays& row, int64_t a, int64_t b) {
 }
 
 // Rays index[0 .. n - 1] of a row (n <= N): one packet where the valid ones share an origin (a
-// camera's rays) and point within kMaxPacketSpread of each other, else one by one. Counts the
-// packets in *packets.
+// camera's rays) and point within kMaxPacketSpread of each other, else one by one; `planned`: a
+// tile of a raster that PlanRow found, a packet without these checks (which rays go into a
+// packet only changes the speed). Counts the packets in *packets.
 template <int N>
 void CastLanes(const RowRays& row, const int64_t* index, int n, rtc::IntersectPacketFn packet,
-               int64_t* packets) {
+               int64_t* packets, bool planned) {
   alignas(64) int mask[N];
   bool traced[N];
   uint32_t geom[N], prim[N];
@@ -439,7 +455,7 @@ void CastLanes(const RowRays& row, const int64_t* index, int n, rtc::IntersectPa
     if (!traced[k]) continue;
     if (lead < 0) {
       lead = k;
-    } else if (coherent) {
+    } else if (coherent && !planned) {
       coherent = SameOrigin(row, index[k], index[lead]) &&
                  Chord2(row, index[k], index[lead]) <= kMaxPacketSpread * kMaxPacketSpread;
     }
@@ -469,8 +485,9 @@ void CastLanes(const RowRays& row, const int64_t* index, int n, rtc::IntersectPa
     packet(mask, row.map->scene, &rays, &args);
     ++*packets;
     for (int k = 0; k < n; ++k) geom[k] = rays.geomID[k], prim[k] = rays.primID[k];
+    return StoreLanes<N>(row, index, n, traced, geom, prim, &rays);
   }
-  StoreLanes<N>(row, index, n, traced, geom, prim);
+  StoreLanes<N>(row, index, n, traced, geom, prim, nullptr);
 }
 
 // A share of the work: `count` rays of batch row `row` from `begin`, either in their own order
@@ -562,7 +579,7 @@ void CastPiece(const RowRays& row, const Piece& piece, rtc::IntersectPacketFn pa
     for (int64_t first = piece.begin; first < end; first += N) {
       int n = int(std::min<int64_t>(N, end - first));
       for (int k = 0; k < n; ++k) index[k] = first + k;
-      CastLanes<N>(row, index, n, packet, &packets);
+      CastLanes<N>(row, index, n, packet, &packets, false);
     }
   } else {
     constexpr int kColumns = N / 2;
@@ -575,7 +592,7 @@ void CastPiece(const RowRays& row, const Piece& piece, rtc::IntersectPacketFn pa
         for (int64_t l = 0; l < band; ++l) {
           for (int64_t c = c0; c < stop; ++c) index[n++] = start + l * piece.width + c;
         }
-        CastLanes<N>(row, index, n, packet, &packets);
+        CastLanes<N>(row, index, n, packet, &packets, true);
       }
     }
   }
