@@ -48,6 +48,12 @@ def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10
 
 
+def minor_faults() -> int:
+    """Minor page faults of this process so far: first touches of fresh memory, e.g. XLA's
+    output buffers where the C library hands back freshly mapped pages (a call's own cost)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
 def device_peak_mib():
     try:
         stats = jax.devices()[0].memory_stats()
@@ -158,9 +164,11 @@ def run_grid(scene, peer, poses, camera, grid, names, repeats, tiles=False):
         row["wall"], row["cpu"] = np.inf, np.inf
     for _ in range(repeats):
         for row in rows:
+            faults = minor_faults()
             wall, cpu, out = timed(row["call"], 1)
             if wall < row["wall"]:
                 row["wall"], row["cpu"] = wall, cpu
+                row["faults"] = minor_faults() - faults
             if row["what"].startswith("raycast"):
                 row["agree"] = float(np.mean(np.asarray(out.triangle_id) == peer_triangles))
     for row in rows:
@@ -216,10 +224,10 @@ def main(argv=None) -> None:
     )
     print(f"- load average {load_start:.1f} at the start")
     print(
-        "\n| rays | what | compile s | wall s | CPU s | M rays/s (wall) | vs peer (wall) "
-        "| same triangle as peer |"
+        "\n| rays | what | compile s | wall s | CPU s | page faults | M rays/s (wall) "
+        "| vs peer (wall) | same triangle as peer |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     for name in args.grids.split(","):
         num_rays, rows = run_grid(
             scene, peer, poses, camera, grids[name], names, args.repeats, name.endswith("tiles")
@@ -230,7 +238,8 @@ def main(argv=None) -> None:
             agree = f"{100 * row['agree']:.3f} %" if "agree" in row else "-"
             print(
                 f"| {label} | {row['what']} | {compile_s} | {row['wall']:.3f} | {row['cpu']:.3f} "
-                f"| {num_rays / row['wall'] / 1e6:.2f} | {row['ratio']:.2f}x | {agree} |"
+                f"| {row['faults']} | {num_rays / row['wall'] / 1e6:.2f} | {row['ratio']:.2f}x "
+                f"| {agree} |"
             )
     device_peak = device_peak_mib()
     print(
@@ -241,8 +250,9 @@ def main(argv=None) -> None:
     print(
         "- wall s: best of the timed runs after compilation and a warm-up call (which builds "
         "the engine's acceleration structure once per map), the rows timed in turn in each "
-        "round; render_batch rows include the views (depth, colour, patch majority), so their "
-        "ratio is against the peer's bare raycast"
+        "round; page faults: the process's minor faults in that run; render_batch rows "
+        "include the views (depth, colour, patch majority), so their ratio is against the "
+        "peer's bare raycast"
     )
 
 
