@@ -373,8 +373,9 @@ void StoreLanes(const RowRays& row, const int64_t* index, int n, const bool* tra
     const float* tri = real ? &row.map->corners[9 * size_t(prim[k])] : kStandInTriangle;
     for (int j = 0; j < 9; ++j) c[j][k] = tri[j];
   }
-  if (packet != nullptr) {  // the lanes' rays as the packet holds them (the lanes without a hit
-                            // hold real rays too, or copies of one; their values are dropped)
+  if (packet != nullptr) {  // the lanes' rays as the packet holds them: a lane without a hit
+                            // may hold an invalid ray or a copy of another; its values are
+                            // dropped (every division is guarded, NaN only propagates)
     const float* const origin[3] = {packet->org_x, packet->org_y, packet->org_z};
     const float* const direction[3] = {packet->dir_x, packet->dir_y, packet->dir_z};
     HitValues<N>(c, origin, direction, t, u, v);
@@ -485,7 +486,8 @@ void CastLanes(const RowRays& row, const int64_t* index, int n, rtc::IntersectPa
     packet(mask, row.map->scene, &rays, &args);
     ++*packets;
     for (int k = 0; k < n; ++k) geom[k] = rays.geomID[k], prim[k] = rays.primID[k];
-    return StoreLanes<N>(row, index, n, traced, geom, prim, &rays);
+    StoreLanes<N>(row, index, n, traced, geom, prim, &rays);
+    return;
   }
   StoreLanes<N>(row, index, n, traced, geom, prim, nullptr);
 }
