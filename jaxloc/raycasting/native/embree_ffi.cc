@@ -373,12 +373,14 @@ void StoreLanes(const RowRays& row, const int64_t* index, int n, const bool* tra
     const float* tri = real ? &row.map->corners[9 * size_t(prim[k])] : kStandInTriangle;
     for (int j = 0; j < 9; ++j) c[j][k] = tri[j];
   }
-  if (packet != nullptr) {  // the lanes' rays as the packet holds them: a lane without a hit
-                            // may hold an invalid ray or a copy of another; its values are
-                            // dropped (every division is guarded, NaN only propagates)
-    const float* const origin[3] = {packet->org_x, packet->org_y, packet->org_z};
-    const float* const direction[3] = {packet->dir_x, packet->dir_y, packet->dir_z};
-    HitValues<N>(c, origin, direction, t, u, v);
+  // The lanes' rays: as the packet holds them (a lane without a hit may hold an invalid ray or a
+  // copy of another; its values are dropped, every division is guarded, NaN only propagates), or
+  // gathered here for rays traced alone.
+  const float* origin[3] = {o[0], o[1], o[2]};
+  const float* direction[3] = {d[0], d[1], d[2]};
+  if (packet != nullptr) {
+    origin[0] = packet->org_x, origin[1] = packet->org_y, origin[2] = packet->org_z;
+    direction[0] = packet->dir_x, direction[1] = packet->dir_y, direction[2] = packet->dir_z;
   } else {
     for (int k = 0; k < N; ++k) {
       bool real = k < n && hit[k];
@@ -386,10 +388,8 @@ void StoreLanes(const RowRays& row, const int64_t* index, int n, const bool* tra
       const float* dk = real ? row.directions + 3 * index[k] : kStandInDirection;
       for (int a = 0; a < 3; ++a) o[a][k] = ok[a], d[a][k] = dk[a];
     }
-    const float* const origin[3] = {o[0], o[1], o[2]};
-    const float* const direction[3] = {d[0], d[1], d[2]};
-    HitValues<N>(c, origin, direction, t, u, v);
   }
+  HitValues<N>(c, origin, direction, t, u, v);
   for (int k = 0; k < n; ++k) {
     int64_t i = index[k];
     row.t[i] = hit[k] ? t[k] : kInf;
