@@ -106,6 +106,23 @@ def test_mesh_file_with_nan_vertex_or_no_faces(tmp_path):
         mesh_io.load_meshes(no_faces)
 
 
+@pytest.mark.parametrize("index", [-5, 99])
+def test_mesh_file_whose_face_names_a_vertex_it_lacks(tmp_path, index):
+    """A damaged PLY face: was an IndexError from trimesh's face colours (99) or a face on the
+    wrong vertex (-5, wrapped around)."""
+    ply = tmp_path / "chair.ply"
+    ply.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\n"
+        "property float z\nproperty uchar red\nproperty uchar green\nproperty uchar blue\n"
+        "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+        f"0 0 0 9 9 9\n1 0 0 9 9 9\n0 1 0 9 9 9\n1 1 0 9 9 9\n3 0 1 2\n3 1 3 {index}\n"
+    )
+    refused = rf"chair\.ply \(object 'chair'\): face 1 refers to vertex {index}, but the file has 4"
+    for given in (ply, [ply]):
+        with pytest.raises(ValueError, match=refused):
+            mesh_io.load_meshes(given)
+
+
 def test_objects_file_that_is_not_utf8_or_truncated(tmp_path):
     binary = tmp_path / "objects.txt"
     binary.write_bytes(b"chair 0 \xff\xfe 1\n")

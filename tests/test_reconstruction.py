@@ -217,6 +217,36 @@ def test_unknown_label_segs_length_and_bad_tables(scannet_copy, tmp_path):
         load_embedding_table(pickled)
 
 
+def _spoil_last_face(path, index: int) -> None:
+    """Make the last face of a PLY whose last element is its faces (as the fixtures write them)
+    name vertex ``index``."""
+    data = path.read_bytes()
+    if b"format ascii" in data[:64]:
+        lines = data.decode().rstrip("\n").split("\n")
+        lines[-1] = " ".join(lines[-1].split()[:-1] + [str(index)])
+        path.write_text("\n".join(lines) + "\n")
+    else:  # binary little-endian: the face's last int32
+        path.write_bytes(data[:-4] + np.int32(index).tobytes())
+
+
+@pytest.mark.parametrize("index", [-5, 10**6])
+def test_a_face_naming_a_vertex_the_file_lacks_is_refused(scannet_copy, objects, tmp_path, index):
+    """A damaged face index: a negative one would wrap around to another vertex silently, a large
+    one fail as an IndexError deep inside; both are a ValueError naming the file."""
+    refused = r"\.ply: face \d+ refers to vertex -?\d+, but the file has \d+ vertices"
+    _spoil_last_face(scannet_copy / "scene0000_00_vh_clean_2.ply", index)
+    with pytest.raises(ValueError, match=refused):
+        read_scannet(scannet_copy)
+    scan = write_3rscan_scan(tmp_path / "3r", objects)
+    _spoil_last_face(scan / "labels.instances.annotated.v2.ply", index)
+    with pytest.raises(ValueError, match=refused):
+        read_3rscan(scan)
+    ply, objects_file = _write_generic(tmp_path, with_faces=True)
+    _spoil_last_face(ply, index)
+    with pytest.raises(ValueError, match=refused):
+        read_generic(ply, objects_file)
+
+
 def test_missing_embedding_in_the_table_names_the_object(scannet_copy, tmp_path):
     table = tmp_path / "t.txt"
     table.write_text("floor 1 0\nwall 0 1\n")

@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from jaxloc.io._faces import check_face_indices
 from jaxloc.io._text import data_lines, parse_finite_floats
 from jaxloc.scene import Capacity, SceneGraph
 
@@ -165,6 +166,7 @@ def _scene_meshes(scene: trimesh.Scene, path: Path) -> dict[str, trimesh.Trimesh
             name = geometry_name if uses[geometry_name] == 1 else node
         if name in out:
             raise ValueError(f"{path}: two objects are named {name!r}; names must be unique")
+        check_face_indices(geometry.faces, len(geometry.vertices), f"{path} (object {name!r})")
         mesh = geometry.copy()
         mesh.apply_transform(transform)
         out[name] = _as_vertex_colors(mesh)

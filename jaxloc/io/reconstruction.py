@@ -18,6 +18,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxloc.io._faces import check_face_indices
+
 #: A file path: ``str`` or ``os.PathLike``.
 PathLike = str | os.PathLike
 
@@ -86,6 +88,7 @@ def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | No
     faces = None
     if isinstance(geometry, trimesh.Trimesh) and len(geometry.faces):
         faces = np.asarray(geometry.faces, np.int64)
+        check_face_indices(faces, vertices.shape[0], str(path))
     raw = geometry.metadata.get("_ply_raw", {}).get("vertex", {}).get("data", {})
     if isinstance(raw, np.ndarray):  # binary PLY: one structured array
         raw = {name: raw[name] for name in raw.dtype.names or ()}
