@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxloc.io import load_instance_map, load_semantickitti_scan
+from jaxloc.io import load_embedding_table, load_instance_map, load_semantickitti_scan
 from jaxloc.io import meshes as mesh_io
 from jaxloc.m2loc import build_map
 from jaxloc.scene import Capacity, SceneGraph
@@ -159,6 +159,27 @@ def test_instance_map_truncated_mid_line_or_empty(tmp_path):
     instances = load_instance_map(empty)  # two vertices in all
     with pytest.raises(ValueError, match="at least 3 vertices"):
         build_map(instances.points, instances.labels)
+
+
+def test_numbers_beyond_float32_in_a_file_are_refused_naming_it(tmp_path):
+    """Finite in float64 but not in float32, where every value read ends up: an instance centroid
+    (was: a map with an infinite point), an embedding-table row (was: a zero map embedding, its
+    norm overflowing), an embedding table's ``.npy``, and a complex ``.npy`` (was: its imaginary
+    part dropped with a ComplexWarning)."""
+    _write_instance_map(tmp_path, b"0 1 2 3\n1 1e39 0 0\n")
+    with pytest.raises(ValueError, match=r"15\.txt:2: .* beyond float32's range \(1e\+39"):
+        load_instance_map(tmp_path)
+    table = tmp_path / "table.txt"
+    table.write_text("chair 1e200 1e200\ntable 0 1\n")
+    with pytest.raises(ValueError, match=r"table\.txt:1: embedding of 'chair' has a value beyond"):
+        load_embedding_table(table)
+    np.save(tmp_path / "big.npy", np.full((2, 3), 1e300))
+    with pytest.raises(ValueError, match=r"big\.npy has a value beyond float32's range"):
+        load_embedding_table(tmp_path / "big.npy")
+    np.save(tmp_path / "complex.npy", np.eye(2) * 1j)
+    complex_refused = r"complex\.npy: expected a \(K, d\) array of real numbers"
+    with pytest.raises(ValueError, match=complex_refused):
+        load_embedding_table(tmp_path / "complex.npy")
 
 
 def test_semantickitti_scan_truncated_or_mismatched(tmp_path):

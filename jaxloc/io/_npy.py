@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxloc.io._text import check_float32_range
+
 #: What numpy can raise on a damaged ``.npy`` (an empty or cut file, a broken header dict, a
 #: shape that cannot be allocated).
 NPY_ERRORS = (
@@ -27,8 +29,9 @@ def read_numeric_npy(path: Path, ndim: int, layout: str, what: str) -> np.ndarra
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: naming the file: not an ``.npy`` of numbers (pickled objects are refused),
-            another rank, NaN or inf.
+        ValueError: naming the file: not an ``.npy`` of real numbers (pickled objects and
+            complex numbers are refused), another rank, NaN or inf, or a value beyond float32's
+            range.
     """
     if not path.is_file():
         raise FileNotFoundError(2, f"No such file ({what})", str(path))
@@ -38,8 +41,13 @@ def read_numeric_npy(path: Path, ndim: int, layout: str, what: str) -> np.ndarra
         raise ValueError(
             f"{path}: not a numeric .npy array ({type(err).__name__}: {err})"
         ) from None
-    if array.ndim != ndim or not np.issubdtype(array.dtype, np.number):
-        raise ValueError(f"{path}: expected a {layout} numeric array, got shape {array.shape}")
+    real = np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)
+    if array.ndim != ndim or not real:
+        raise ValueError(
+            f"{path}: expected a {layout} array of real numbers, got shape {array.shape} of "
+            f"{array.dtype}"
+        )
     if not np.all(np.isfinite(array)):
         raise ValueError(f"{path}: embeddings contain NaN or inf")
+    check_float32_range(array, str(path))
     return array

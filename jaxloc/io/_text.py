@@ -36,8 +36,14 @@ def data_lines(path: str | os.PathLike, *, comments: bool = False) -> Iterator[t
             yield line_number, line
 
 
+#: The largest magnitude a number read from a user's file may have: float32's, as every value
+#: jaxloc reads ends up in float32 arrays (a larger finite value would become inf there, far
+#: from the file that held it).
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
 def parse_finite_floats(fields: Sequence[str], where: str, what: str) -> list[float]:
-    """Fields as finite floats.
+    """Fields as finite floats within float32's range (:data:`FLOAT32_MAX`).
 
     Args:
         fields: the text fields.
@@ -45,8 +51,9 @@ def parse_finite_floats(fields: Sequence[str], where: str, what: str) -> list[fl
         what: what the fields are, for errors (e.g. ``"embedding of object 'chair'"``).
 
     Raises:
-        ValueError: ``"{where}: {what} has a non-numeric value (...)"`` or
-            ``"{where}: {what} has NaN or inf"``.
+        ValueError: ``"{where}: {what} has a non-numeric value (...)"``,
+            ``"{where}: {what} has NaN or inf"`` or ``"{where}: {what} has a value beyond
+            float32's range (...)"``.
     """
     try:
         values = [float(field) for field in fields]
@@ -54,7 +61,18 @@ def parse_finite_floats(fields: Sequence[str], where: str, what: str) -> list[fl
         raise ValueError(f"{where}: {what} has a non-numeric value ({err})") from None
     if not np.all(np.isfinite(values)):
         raise ValueError(f"{where}: {what} has NaN or inf")
+    check_float32_range(np.asarray(values), f"{where}: {what}")
     return values
+
+
+def check_float32_range(values: np.ndarray, where: str) -> None:
+    """Raise ``ValueError`` ``"{where} has a value beyond float32's range (...)"`` if a finite
+    value of ``values`` is larger in magnitude than :data:`FLOAT32_MAX`."""
+    if values.size and np.max(np.abs(values)) > FLOAT32_MAX:
+        largest = values.flat[int(np.argmax(np.abs(values)))]
+        raise ValueError(
+            f"{where} has a value beyond float32's range ({largest:g}; at most {FLOAT32_MAX:.3g})"
+        )
 
 
 def read_float_table(path: str | os.PathLike, columns: int, what: str) -> np.ndarray:
