@@ -200,15 +200,32 @@ def depth_metres(image: Image.Image, scale: float, where: str) -> np.ndarray:
 
 
 def frame_numbers(folder: Path, suffixes: tuple[str, ...]) -> list[tuple[int, Path]]:
-    """(number, file) of the files ``N.<suffix>`` of a folder, sorted as numbers."""
+    """(number, file) of the files ``N.<suffix>`` of a folder, sorted as numbers.
+
+    Raises:
+        FileNotFoundError: no such folder.
+        ValueError: a file not named by its number (ASCII digits), two files of one number
+            (``1.jpg`` and ``01.jpg``, ``1.jpg`` and ``1.png``: which is the frame would be a
+            guess; :func:`check_distinct_frame_numbers`), no such file at all.
+    """
     if not folder.is_dir():
         raise FileNotFoundError(2, "No such folder", str(folder))
     found = []
     for path in folder.iterdir():
         if path.suffix.lower() in suffixes:
-            if not path.stem.isdigit():
+            if not (path.stem.isascii() and path.stem.isdigit()):
                 raise ValueError(f"{path}: frame files must be named by their number")
             found.append((int(path.stem), path))
     if not found:
         raise ValueError(f"{folder}: no frames ({' or '.join(suffixes)} files)")
-    return sorted(found)
+    found.sort()
+    check_distinct_frame_numbers(found)
+    return found
+
+
+def check_distinct_frame_numbers(numbered: list[tuple[int, Path]]) -> None:
+    """Raise ``ValueError`` naming both files when two of the (number, file) pairs, sorted by
+    number, share a number."""
+    for (number, first), (other, second) in zip(numbered, numbered[1:], strict=False):
+        if number == other:
+            raise ValueError(f"{first} and {second}: two frame files with the same number {number}")

@@ -140,7 +140,8 @@ def write_camera_poses(
 ) -> None:
     """Write estimated camera-to-world poses of a recording's frames for evo (atomically): the
     (T, 4) yaw poses with the frames' known tilt (``recording.sequence.tilt``), as TUM lines (the
-    frame's timestamp in seconds, else its number) or KITTI lines (one 3x4 per frame)."""
+    frame's timestamp in seconds where the frames' timestamps all differ, else its number: a
+    ``.sens`` file may carry zero timestamps) or KITTI lines (one 3x4 per frame)."""
     matrices = camera_pose_matrices(poses, recording.sequence.tilt)
     if format == "kitti":
         write_kitti(path, matrices)
@@ -148,6 +149,6 @@ def write_camera_poses(
     if format != "tum":
         raise ValueError(f"format must be 'tum' or 'kitti', got {format!r}")
     stamps = recording.timestamps
-    if stamps is None:
+    if stamps is None or len(np.unique(stamps)) != len(stamps):
         stamps = np.asarray(recording.frame_ids, np.float64)
     write_tum(path, matrices, stamps)

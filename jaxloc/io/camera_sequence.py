@@ -172,20 +172,28 @@ def read_odometry(path: str | os.PathLike, numbers: tuple[int, ...]) -> Odometry
 
     Raises:
         ValueError: naming file and line: another field count, a non-number, NaN/inf, a pose
-            that is not rigid; KITTI / 4x4 lines of another count than the frames.
+            that is not rigid, a frame number on two lines (``1`` and ``01``), a TUM stamp on
+            two lines; KITTI / 4x4 lines of another count than the frames.
     """
     path = Path(path)
     first = next(iter(data_lines(path, comments=True)), (0, ""))[1].split()
     if len(first) == 17:
-        out = {}
+        out: dict[int, np.ndarray] = {}
+        line_of: dict[int, int] = {}
         for line_number, line in data_lines(path, comments=True):
             fields, where = line.split(), f"{path}:{line_number}"
-            if len(fields) != 17 or not fields[0].isdigit():
+            if len(fields) != 17 or not (fields[0].isascii() and fields[0].isdigit()):
                 raise ValueError(
                     f"{where}: expected 'N m00 m01 ... m33' (frame number, 16 numbers)"
                 )
+            number = int(fields[0])
+            if number in out:
+                raise ValueError(
+                    f"{where}: frame {number} appears more than once (line {line_of[number]} "
+                    "has its pose too): two poses for one frame"
+                )
             matrix = np.asarray(parse_finite_floats(fields[1:], where, "pose")).reshape(4, 4)
-            out[int(fields[0])] = check_rigid(matrix, where)
+            out[number], line_of[number] = check_rigid(matrix, where), line_number
         return Odometry(path, out, None, None, 0)
     poses = read_pose_file(path)
     if poses.timestamps is not None:
@@ -312,6 +320,13 @@ def load_camera_sequence(
             pose = pose if transform is None else transform @ pose
             gt.append(pose)
         if odometry_poses is not None:
+            by_time = odometry_poses.by_number is None and frame.timestamp is not None
+            if by_time and stamps and frame.timestamp <= stamps[-1]:
+                raise ValueError(
+                    f"{source.path} (frame {number}): timestamp {frame.timestamp} s is not after "
+                    f"frame {kept[-1]}'s ({stamps[-1]} s); frames are matched to the odometry "
+                    f"{odometry_poses.path} by time, so their times must increase"
+                )
             pose = odometry_poses.pose(number, frame.timestamp)
         motion_poses.append(pose)
         kept.append(number)

@@ -211,16 +211,13 @@ def read_helipr_gt(path: str | os.PathLike) -> HeliprGroundTruth:
     Raises:
         FileNotFoundError: no such file.
         ValueError: naming ``file:line``: not 8 fields, a stamp that is not an integer, NaN/inf,
-            a quaternion that is not unit, a repeated stamp.
+            a quaternion that is not unit, a repeated stamp (as every TUM file,
+            :func:`jaxloc.io.poses.read_pose_file`).
     """
     found = read_pose_file(path, time_unit="ns")
     if found.format != "tum":
         raise ValueError(f"{path}: expected 'stamp x y z qx qy qz qw' lines, got {found.format}")
-    stamps = found.timestamps
-    unique, counts = np.unique(stamps, return_counts=True)
-    if np.any(counts > 1):
-        raise ValueError(f"{path}: stamp {unique[counts > 1][0]} appears more than once")
-    return HeliprGroundTruth(stamps, found.poses)
+    return HeliprGroundTruth(found.timestamps, found.poses)
 
 
 def helipr_sensors(seq_dir: str | os.PathLike) -> list[str]:

@@ -15,8 +15,9 @@ SemanticKITTI (checked against the dataset's documentation and its API code, PRB
 
 Plain: ``NNN.bin`` with ``NNN.label`` in ``SEQ_DIR`` (or ``velodyne/`` + ``labels/``), a
 ``poses.txt`` of ``T_map_scan`` and no ``calib.txt``. Scans are ordered by their file names,
-numerically when the names are numbers (``0, 11, 102``). Labels of both are raw SemanticKITTI
-ids (converted with :func:`jaxloc.io.semantickitti.semantickitti_class_ids`).
+numerically when the names are numbers (``0, 11, 102``; two files of one number, ``1.bin`` and
+``01.bin``, are an error). Labels of both are raw SemanticKITTI ids (converted with
+:func:`jaxloc.io.semantickitti.semantickitti_class_ids`).
 
 HeLiPR / TripletLoc (:mod:`jaxloc.io.helipr`): ``LiDAR/<sensor>/<stamp>.bin``,
 ``labels/<stamp>.label`` (SPVNAS class ids, used as they are), ``LiDAR_GT/<Sensor>_gt.txt``;
@@ -145,19 +146,29 @@ def velodyne_to_camera(path: str | os.PathLike) -> np.ndarray:
 
 
 def read_times(path: str | os.PathLike, count: int) -> np.ndarray:
-    """KITTI's ``times.txt``: one time in seconds per scan, as (count,) int64 nanoseconds.
+    """KITTI's ``times.txt``: one time in seconds per scan, in scan order, as (count,) int64
+    nanoseconds. The times must increase strictly: a repeated time would give two scans one pose
+    and leave a pose unused, a decreasing one would pair scans with poses out of order.
 
     Raises:
-        ValueError: naming ``file:line``: not one number a line, NaN/inf; or another count.
+        ValueError: naming ``file:line``: not one number a line, NaN/inf, a time that is not
+            after the previous line's; or another count.
     """
-    stamps = []
+    stamps: list[int] = []
+    previous = ("", 0)  # the previous time as written, and its line
     for line_number, line in data_lines(path, comments=True):
         fields = line.split()
+        where = f"{path}:{line_number}"
         if len(fields) != 1:
+            raise ValueError(f"{where}: expected one time (seconds), got {line[:60]!r}")
+        stamp = seconds_to_ns(fields[0], where)
+        if stamps and stamp <= stamps[-1]:
             raise ValueError(
-                f"{path}:{line_number}: expected one time (seconds), got {line[:60]!r}"
+                f"{where}: time {fields[0][:40]} s is not after line {previous[1]}'s "
+                f"({previous[0][:40]} s); the times must increase, one per scan in scan order"
             )
-        stamps.append(seconds_to_ns(fields[0], f"{path}:{line_number}"))
+        stamps.append(stamp)
+        previous = (fields[0], line_number)
     if len(stamps) != count:
         raise ValueError(f"{path}: {len(stamps)} times for {count} scans")
     return np.asarray(stamps, np.int64)
@@ -194,6 +205,19 @@ def assign_poses(
     return poses, matched, len(found.poses) - len(np.unique(index[matched]))
 
 
+def check_distinct_scan_numbers(bins: list[Path], what: str = "number") -> None:
+    """Raise ``ValueError`` naming both files when two scans sorted by :func:`scan_order_key`
+    are named by the same number (``1.bin`` and ``01.bin``): the scan of that number, its place
+    in the order and its pose or stamp would be ambiguous. ``what`` names the number in the
+    message ("number", or "stamp" for HeLiPR's nanosecond names)."""
+    for first, second in zip(bins, bins[1:], strict=False):
+        first_key, second_key = scan_order_key(first), scan_order_key(second)
+        if first_key[0] == second_key[0] == 0 and first_key[1] == second_key[1]:
+            raise ValueError(
+                f"{first} and {second}: two scans named by the same {what} {first_key[1]}"
+            )
+
+
 def _kitti_scan_files(root: Path) -> tuple[list[Path], list[Path]]:
     if (root / "velodyne").is_dir():
         bins = sorted((root / "velodyne").glob("*.bin"), key=scan_order_key)
@@ -203,6 +227,7 @@ def _kitti_scan_files(root: Path) -> tuple[list[Path], list[Path]]:
         labels = [path.with_suffix(".label") for path in bins]
     if not bins:
         raise ValueError(f"{root}: no scans (expected velodyne/*.bin or *.bin)")
+    check_distinct_scan_numbers(bins)
     return bins, labels
 
 
@@ -264,6 +289,7 @@ def _helipr_sequence(root: Path, sensor: str | None, require_poses: bool) -> Lid
     )
     if not bins:
         raise ValueError(f"{folder}: no scans (<stamp>.bin)")
+    check_distinct_scan_numbers(bins, "stamp")
     stamps = np.array([helipr.scan_stamp(path) for path in bins], np.int64)  # sorted, as bins
     labels_dir = helipr.label_folder(root)
     labels = [labels_dir / path.with_suffix(".label").name for path in bins]
@@ -309,9 +335,10 @@ def load_lidar_sequence(
 
     Raises:
         FileNotFoundError: no such folder, a scan without its label file, no pose file.
-        ValueError: no scans, an unknown layout, a malformed pose, calibration or times file, a
-            pose count that differs from the scan count, poses whose times match no scan (each
-            naming the file).
+        ValueError: no scans, two scans named by one number or stamp, an unknown layout, a
+            malformed pose, calibration or times file (times that do not increase, a TUM stamp
+            on two lines), a pose count that differs from the scan count, poses whose times match
+            no scan (each naming the file).
     """
     root = Path(seq_dir)
     if not root.is_dir():

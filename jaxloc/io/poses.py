@@ -13,7 +13,8 @@ Three text formats, told apart per file by the number of fields on a line (blank
 Each pose maps points of the moving frame (a scan, a camera) into the fixed one (the map, the
 world): ``p_map = T @ p_scan``. Timestamps are kept as int64 **nanoseconds**, parsed from the text
 exactly (a float64 holds an epoch time in seconds to ~0.24 us only, and HeLiPR's scan files are
-named by the exact integer).
+named by the exact integer). The stamps of a TUM file must all differ: poses are matched to scans
+and frames by time, and of two poses at one time only one could be used.
 
 The writers (:func:`write_tum`, :func:`write_kitti`) write what evo's readers accept: one
 single space between fields, no trailing space, no comment, each number as Python's shortest
@@ -24,7 +25,8 @@ from __future__ import annotations
 
 import os
 import re
-from decimal import Decimal, InvalidOperation
+from collections.abc import Sequence
+from decimal import ROUND_HALF_EVEN, Decimal, InvalidOperation, localcontext
 from typing import NamedTuple
 
 import numpy as np
@@ -78,16 +80,48 @@ def check_rigid(poses: np.ndarray, path: str | os.PathLike) -> None:
 
 def seconds_to_ns(text: str, where: str) -> int:
     """A decimal number of seconds (``"1691936557.946849179"``, ``"1.5e-3"``) as int nanoseconds,
-    exactly (rounded half to even below 1 ns). Raises ``ValueError`` naming ``where``."""
+    exactly (rounded half to even below 1 ns), whatever the number of digits: the text is parsed
+    exactly, shifted by nine decimal places with a precision that holds all its digits, and
+    rounded once, to an integer. Raises ``ValueError`` naming ``where``."""
     try:
         value = Decimal(text)
     except InvalidOperation:
         raise ValueError(f"{where}: timestamp {text[:40]!r} is not a number") from None
     if not value.is_finite():
         raise ValueError(f"{where}: timestamp is NaN or inf")
-    if abs(value) > Decimal(_INT64_MAX) / 10**9:
+    if abs(value) > Decimal(_INT64_MAX).scaleb(-9):
         raise ValueError(f"{where}: timestamp {text[:40]!r} s is out of range")
-    return int((value * 10**9).to_integral_value())
+    # scaleb keeps the digits and moves the exponent; the default 28-digit context would round
+    # the digits first (1691936557.94684917949999999999999 s to ...180 ns instead of ...179)
+    with localcontext() as exact:
+        exact.prec = max(exact.prec, len(value.as_tuple().digits))
+        nanoseconds = value.scaleb(9)
+    return int(nanoseconds.to_integral_value(rounding=ROUND_HALF_EVEN))
+
+
+def check_distinct_stamps(
+    stamps_ns: np.ndarray,
+    tokens: Sequence[str],
+    line_numbers: Sequence[int],
+    path: str | os.PathLike,
+) -> None:
+    """Raise ``ValueError`` naming ``path`` and both lines unless every stamp differs: two poses at
+    one time make matching by time keep one and drop the other.
+
+    Args:
+        stamps_ns: (N,) int64 nanoseconds, one per line.
+        tokens: the stamps as written (for the message).
+        line_numbers: the 1-based line of each stamp.
+        path: the file.
+    """
+    first_line: dict[int, int] = {}
+    for stamp, token, line_number in zip(stamps_ns.tolist(), tokens, line_numbers, strict=True):
+        if stamp in first_line:
+            raise ValueError(
+                f"{path}:{line_number}: stamp {token[:40]} appears more than once (line "
+                f"{first_line[stamp]} has the same time): two poses at one time"
+            )
+        first_line[stamp] = line_number
 
 
 def _stamps_ns(tokens: list[str], wheres: list[str], time_unit: str) -> tuple[np.ndarray, str]:
@@ -136,12 +170,13 @@ def read_pose_file(path: str | os.PathLike, time_unit: str = "auto") -> PoseFile
         FileNotFoundError: no such file.
         ValueError: naming ``file:line``: a field count other than 8, 12 or 16, a line whose
             count differs from the first line's, a non-number, NaN/inf, a TUM quaternion whose
-            norm is not 1 (within :data:`QUATERNION_TOLERANCE`); naming the file: not UTF-8
-            text, no pose at all, a pose that is not rigid.
+            norm is not 1 (within :data:`QUATERNION_TOLERANCE`), a TUM stamp that repeats an
+            earlier line's (:func:`check_distinct_stamps`: two poses at one time); naming the
+            file: not UTF-8 text, no pose at all, a pose that is not rigid.
     """
     if time_unit not in ("auto", "s", "ns"):
         raise ValueError(f"time_unit must be 'auto', 's' or 'ns', got {time_unit!r}")
-    count, rows, stamps, wheres = None, [], [], []
+    count, rows, stamps, wheres, line_numbers = None, [], [], [], []
     for line_number, line in data_lines(path, comments=True):
         fields = line.split()
         where = f"{path}:{line_number}"
@@ -162,6 +197,7 @@ def read_pose_file(path: str | os.PathLike, time_unit: str = "auto") -> PoseFile
             rows.append(_tum_pose(values, where))
             stamps.append(fields[0])
             wheres.append(where)
+            line_numbers.append(line_number)
         else:
             pose = np.eye(4)
             pose.flat[:count] = parse_finite_floats(fields, where, "pose")
@@ -173,6 +209,7 @@ def read_pose_file(path: str | os.PathLike, time_unit: str = "auto") -> PoseFile
     if count != 8:
         return PoseFile(poses, None, FIELDS[count])
     timestamps, unit = _stamps_ns(stamps, wheres, time_unit)
+    check_distinct_stamps(timestamps, stamps, line_numbers, path)
     return PoseFile(poses, timestamps, "tum", unit)
 
 
@@ -251,7 +288,9 @@ def write_tum(
     The quaternion is written with ``qw >= 0`` (q and -q are the same rotation).
 
     Raises:
-        ValueError: wrong shapes, NaN/inf, a pose that is not rigid, or a count mismatch.
+        ValueError: wrong shapes, NaN/inf, a pose that is not rigid, a count mismatch, or two
+            poses at one time (a TUM file has one pose per time; :func:`read_pose_file` refuses
+            repeats).
     """
     poses = _check_poses(poses, path)
     stamps = np.asarray(timestamps)
@@ -263,6 +302,9 @@ def write_tum(
         times = [_number(t) for t in stamps]
     else:
         raise ValueError(f"{path}: timestamps must be integer ns or finite float seconds")
+    if len(set(times)) != len(times):  # the reader refuses such a file (check_distinct_stamps)
+        repeated = next(t for t in times if times.count(t) > 1)
+        raise ValueError(f"{path}: two poses share the timestamp {repeated} s: nothing written")
     from scipy.spatial.transform import Rotation
 
     quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat().reshape(-1, 4)

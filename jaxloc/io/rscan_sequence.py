@@ -34,6 +34,7 @@ import numpy as np
 from jaxloc.io.camera_frames import (
     Frame,
     FrameSource,
+    check_distinct_frame_numbers,
     check_intrinsics,
     check_rigid,
     depth_metres,
@@ -94,8 +95,9 @@ def open_rscan_sequence(path: str | os.PathLike) -> FrameSource:
     Raises:
         FileNotFoundError: no ``_info.txt`` there.
         ValueError: naming the file: a malformed ``_info.txt`` (sizes, depth shift,
-            intrinsics), no frames; when a frame is loaded: an unreadable image, a depth image
-            of another size than ``_info.txt`` says, a malformed or non-rigid pose.
+            intrinsics), no frames, two frames of one number (``frame-000001`` and
+            ``frame-1``); when a frame is loaded: an unreadable image, a depth image of another
+            size than ``_info.txt`` says, a malformed or non-rigid pose.
     """
     folder = sequence_folder(path)
     if folder is None:
@@ -113,13 +115,11 @@ def open_rscan_sequence(path: str | os.PathLike) -> FrameSource:
     K_depth = _numbers(info, "m_calibrationDepthIntrinsic", 16, info_path).reshape(4, 4)
     check_intrinsics(K_color, f"{info_path} (colour intrinsics)")
     check_intrinsics(K_depth, f"{info_path} (depth intrinsics)")
-    stems = {
-        int(m.group(1)): f"frame-{m.group(1)}"
-        for p in folder.iterdir()
-        if (m := _FRAME.match(p.name))
-    }
-    if not stems:
+    numbered = sorted((int(m.group(1)), p) for p in folder.iterdir() if (m := _FRAME.match(p.name)))
+    if not numbered:
         raise ValueError(f"{folder}: no frames (frame-NNNNNN.color.jpg files)")
+    check_distinct_frame_numbers(numbered)  # frame-000001 and frame-1
+    stems = {number: path.name.removesuffix(".color.jpg") for number, path in numbered}
 
     def load(number: int, with_depth: bool) -> Frame:
         stem = folder / stems[number]

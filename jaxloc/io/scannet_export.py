@@ -45,7 +45,8 @@ def open_scannet_export(folder: str | os.PathLike) -> FrameSource:
 
     Raises:
         FileNotFoundError: a missing folder or intrinsics file.
-        ValueError: naming the file: malformed intrinsics, frame files not named by numbers, an
+        ValueError: naming the file: malformed intrinsics, frame files not named by numbers,
+            two colour files of one number (``1.jpg`` and ``01.jpg`` or ``1.png``), an
             unreadable first colour image.
     """
     folder = Path(folder)
