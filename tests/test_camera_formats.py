@@ -14,6 +14,7 @@ PGM with a comment line) and ScanNet's ``README.md`` (``label-filt/N.png``: 16-b
 from __future__ import annotations
 
 import json
+import shutil
 import struct
 
 import numpy as np
@@ -133,6 +134,35 @@ def test_a_rescan_is_expressed_in_its_reference_frame(recording, tmp_path):
     np.testing.assert_allclose(moved.sequence.ego_motion, reference.sequence.ego_motion, atol=1e-5)
     with pytest.raises(ValueError, match="no scan 'other'"):
         read_rescan_transform(tmp_path / "3RScan.json", "other")
+    scenes[0]["scans"] = 5  # was: a TypeError from iterating it
+    (tmp_path / "3RScan.json").write_text(json.dumps(scenes))
+    with pytest.raises(ValueError, match=r"3RScan\.json: scene 'ref_scan': 'scans' is not a list"):
+        read_rescan_transform(tmp_path / "3RScan.json", "rescan_id")
+
+
+@pytest.mark.parametrize(
+    "entry, value", [((0, 1), 3.0), ((2, 2), 0.0), ((3, 0), 9.0), ((1, 3), 0.5)]
+)
+def test_intrinsics_not_of_the_pinhole_form_are_refused_naming_the_file(
+    recording, tmp_path, entry, value
+):
+    """ScanNet's ``intrinsic_color.txt`` holds ``[fx 0 cx 0; 0 fy cy 0; 0 0 1 0; 0 0 0 1]``; a
+    skew or another changed fixed entry was read as if it were not there (only fx, fy were
+    checked), and the error for fx = 0 named "K_color", not the file."""
+    root, _ = recording
+    export = tmp_path / "export"
+    shutil.copytree(root / "export", export)
+    path = export / "intrinsic" / "intrinsic_color.txt"
+    K = np.loadtxt(path)
+    K[entry] = value
+    np.savetxt(path, K)
+    with pytest.raises(ValueError, match=r"intrinsic_color\.txt: not a pinhole intrinsic matrix"):
+        load_camera_sequence(export)
+    K[entry] = np.eye(4)[entry]
+    K[0, 0] = 0.0
+    np.savetxt(path, K)
+    with pytest.raises(ValueError, match=r"intrinsic_color\.txt: not a pinhole .*fx, fy must be"):
+        load_camera_sequence(export)
 
 
 def test_patch_histograms_equal_a_pixel_loop():

@@ -81,6 +81,10 @@ def test_the_opener_refuses_what_does_not_fit(recording_and_map, tmp_path):
     (tmp_path / "broken.npz").write_bytes(b"not a map")
     with pytest.raises(ValueError, match="broken.npz: not a readable jaxloc map"):
         open_camera_recording(folder, map_file=tmp_path / "broken.npz")
+    scaled = tmp_path / "scaled.txt"  # a transform file that is not rigid: named (was not)
+    scaled.write_text("2 0 0 0\n0 2 0 0\n0 0 2 0\n0 0 0 1\n")
+    with pytest.raises(ValueError, match=r"scaled\.txt: not a rigid transform"):
+        open_camera_recording(folder, transform=scaled)
 
 
 def test_poses_written_for_evo(recording_and_map, tmp_path):

@@ -131,11 +131,25 @@ def check_rigid(matrix: np.ndarray, where: str) -> np.ndarray:
     return matrix
 
 
+#: Tolerance on the entries of an intrinsic matrix that the pinhole form fixes (0 or 1).
+PINHOLE_TOLERANCE = 1e-6
+
+
 def check_intrinsics(K: np.ndarray, where: str) -> np.ndarray:
-    """``K`` (4, 4) if its focal lengths are positive and its entries finite."""
+    """``K`` (4, 4) if it has the pinhole form of ScanNet's and 3RScan's files,
+    ``[fx 0 cx 0; 0 fy cy 0; 0 0 1 0; 0 0 0 1]``, with finite entries and fx, fy > 0: jaxloc's
+    camera has no skew, so a matrix of another form is refused rather than read in part."""
     checked(K, where)
     if K.shape != (4, 4) or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ValueError(f"{where}: not a pinhole intrinsic matrix (fx, fy must be > 0)")
+    form = np.array([[1, 0, 1, 0], [0, 1, 1, 0], [0, 0, 1, 0], [0, 0, 0, 1]], np.float64)
+    free = np.zeros((4, 4), bool)
+    free[0, 0] = free[1, 1] = free[0, 2] = free[1, 2] = True  # fx, fy, cx, cy
+    if np.max(np.abs(np.where(free, 0.0, K - form))) > PINHOLE_TOLERANCE:
+        raise ValueError(
+            f"{where}: not a pinhole intrinsic matrix [fx 0 cx 0; 0 fy cy 0; 0 0 1 0; 0 0 0 1] "
+            f"(a skew or another fixed entry differs: {np.round(K, 6).tolist()})"
+        )
     return K
 
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxloc.geometry import yaw_pose_to_se3
 from jaxloc.io._map_file import read_map_file
-from jaxloc.io.camera_frames import read_matrix
+from jaxloc.io.camera_frames import check_rigid, read_matrix
 from jaxloc.io.camera_sequence import CameraRecording, load_camera_sequence
 from jaxloc.io.poses import write_kitti, write_tum
 from jaxloc.io.rscan_sequence import read_rescan_transform, scan_id_of
@@ -97,7 +97,7 @@ def open_camera_recording(
     if min(patch_shape) < 1:
         raise ValueError(f"patch_shape must be >= 1, got {list(patch_shape)}")
     if isinstance(transform, str | os.PathLike):
-        transform = read_matrix(transform)
+        transform = check_rigid(read_matrix(transform), str(transform))
     elif rescan_json is not None:
         transform = read_rescan_transform(rescan_json, scan_id or scan_id_of(path))
     label_map = None

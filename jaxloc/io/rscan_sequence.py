@@ -162,7 +162,10 @@ def read_rescan_transform(json_path: str | os.PathLike, scan_id: str) -> np.ndar
             raise ValueError(f"{path}: a scene entry is not an object")
         if scene.get("reference") == scan_id:
             return np.eye(4)
-        for scan in scene.get("scans", []):
+        scans = scene.get("scans", [])
+        if not isinstance(scans, list):
+            raise ValueError(f"{path}: scene {scene.get('reference')!r}: 'scans' is not a list")
+        for scan in scans:
             if isinstance(scan, dict) and scan.get("reference") == scan_id:
                 values = scan.get("transform")
                 if not isinstance(values, list) or len(values) != 16:

@@ -51,7 +51,8 @@ def open_scannet_export(folder: str | os.PathLike) -> FrameSource:
     """
     folder = Path(folder)
     colors = dict(frame_numbers(folder / "color", (".jpg", ".jpeg", ".png")))
-    K = check_intrinsics(read_matrix(folder / "intrinsic" / "intrinsic_color.txt"), "K_color")
+    color_K_path = folder / "intrinsic" / "intrinsic_color.txt"
+    K = check_intrinsics(read_matrix(color_K_path), str(color_K_path))
     first = min(colors)
     size = read_image(colors[first]).size
     depth_folder = folder / "depth"
