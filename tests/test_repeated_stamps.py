@@ -1,5 +1,6 @@
-"""Repeated and out-of-order stamps, and two files of one number, in a user's recording: each is a
-``ValueError`` naming the file(s) at the reader, never one of two poses silently kept.
+"""Repeated and out-of-order stamps, two files of one number, keys given twice in a user's
+recording: each is a ``ValueError`` naming the file(s) at the reader, never one of two silently
+kept.
 
 Every recording is written here byte by byte in its real format (TUM / KITTI text, SemanticKITTI
 and HeLiPR scans, a ScanNet export, a 3RScan sequence, a version-4 ``.sens``), a few tiny frames
@@ -9,6 +10,7 @@ each, so nothing is rendered or compiled.
 from __future__ import annotations
 
 import io
+import json
 import re
 import struct
 import zlib
@@ -21,9 +23,9 @@ from PIL import Image
 from jaxloc.io.camera_recording import write_camera_poses
 from jaxloc.io.camera_sequence import load_camera_sequence, read_odometry
 from jaxloc.io.lidar_recording import open_lidar_recording
-from jaxloc.io.lidar_sequence import load_lidar_sequence
+from jaxloc.io.lidar_sequence import load_lidar_sequence, read_kitti_calibration
 from jaxloc.io.poses import read_pose_file, seconds_to_ns, write_tum
-from jaxloc.io.rscan_sequence import open_rscan_sequence
+from jaxloc.io.rscan_sequence import open_rscan_sequence, read_rescan_transform
 from jaxloc.io.scannet_export import open_scannet_export
 from jaxloc.io.scannet_sens import open_sens
 
@@ -317,3 +319,27 @@ def test_poses_of_frames_without_distinct_times_are_written_by_frame_number(tmp_
     path = tmp_path / "poses.txt"
     write_camera_poses(path, recording, np.zeros((3, 4)))
     assert read_pose_file(path).timestamps.tolist() == [0, 10**9, 2 * 10**9]
+
+
+# ------------------------------------------------------------------------- keys given twice
+
+
+def test_a_key_given_twice_is_refused(tmp_path):
+    """A second ``Tr:`` in ``calib.txt`` or ``m_depthShift`` in ``_info.txt`` overrode the
+    first, and of a scan listed twice in ``3RScan.json`` the first entry was used."""
+    calib = tmp_path / "calib.txt"
+    rigid = "1 0 0 0 0 1 0 0 0 0 1 0"
+    calib.write_text(f"Tr: {rigid}\nTr: 1 0 0 5 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(ValueError, match=r"calib\.txt:2: Tr is given twice"):
+        read_kitti_calibration(calib)
+    scan = write_rscan(tmp_path / "scan")
+    info = scan / "sequence" / "_info.txt"
+    info.write_text(info.read_text() + "m_depthShift = 4000\n")
+    with pytest.raises(ValueError, match=r"_info\.txt:8: m_depthShift is given twice"):
+        open_rscan_sequence(scan)
+    entry = {"reference": "rescan", "transform": np.eye(4).ravel().tolist()}
+    scenes = [{"reference": "a", "scans": [entry]}, {"reference": "b", "scans": [entry]}]
+    (tmp_path / "3RScan.json").write_text(json.dumps(scenes))
+    with pytest.raises(ValueError, match=r"3RScan\.json: scan 'rescan' is listed 2 times"):
+        read_rescan_transform(tmp_path / "3RScan.json", "rescan")
+    np.testing.assert_array_equal(read_rescan_transform(tmp_path / "3RScan.json", "a"), np.eye(4))

@@ -120,7 +120,8 @@ def read_kitti_calibration(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """A KITTI ``calib.txt``: lines ``KEY: 12 numbers`` as (4, 4) float64 matrices by key.
 
     Raises:
-        ValueError: a line without ``KEY:``, not 12 numbers, or NaN/inf (file:line).
+        ValueError: a line without ``KEY:``, not 12 numbers, NaN/inf, or a key given twice
+            (which matrix holds would be a guess) (file:line).
     """
     calibration = {}
     for line_number, line in data_lines(path):
@@ -129,6 +130,8 @@ def read_kitti_calibration(path: str | os.PathLike) -> dict[str, np.ndarray]:
         fields = values.split()
         if not colon or not key.strip() or len(fields) != 12:
             raise ValueError(f"{where}: expected 'KEY: 12 numbers', got {line[:60]!r}")
+        if key.strip() in calibration:
+            raise ValueError(f"{where}: {key.strip()} is given twice")
         matrix = np.eye(4)
         matrix[:3] = np.reshape(parse_finite_floats(fields, where, key.strip()), (3, 4))
         calibration[key.strip()] = matrix

@@ -59,7 +59,8 @@ def read_info(path: str | os.PathLike) -> dict[str, list[str]]:
     """The ``key = values`` lines of an ``_info.txt`` (values split on white space).
 
     Raises:
-        ValueError: naming the file and line: a line without `` = ``, not UTF-8 text.
+        ValueError: naming the file and line: a line without `` = ``, a key given twice (which
+            value holds would be a guess), not UTF-8 text.
     """
     path = Path(path)
     try:
@@ -73,6 +74,8 @@ def read_info(path: str | os.PathLike) -> dict[str, list[str]]:
         key, equals, value = line.partition("=")
         if not equals or not key.strip():
             raise ValueError(f"{path}:{line_number}: expected 'key = values'")
+        if key.strip() in info:
+            raise ValueError(f"{path}:{line_number}: {key.strip()} is given twice")
         info[key.strip()] = value.split()
     return info
 
@@ -157,27 +160,32 @@ def read_rescan_transform(json_path: str | os.PathLike, scan_id: str) -> np.ndar
         raise ValueError(f"{path}: not a readable JSON file ({err})") from None
     if not isinstance(scenes, list):
         raise ValueError(f"{path}: expected 3RScan.json's list of scenes")
+    found = []  # the scan's entries: None for a reference scan, else its rescan entry
     for scene in scenes:
         if not isinstance(scene, dict):
             raise ValueError(f"{path}: a scene entry is not an object")
         if scene.get("reference") == scan_id:
-            return np.eye(4)
+            found.append(None)
         scans = scene.get("scans", [])
         if not isinstance(scans, list):
             raise ValueError(f"{path}: scene {scene.get('reference')!r}: 'scans' is not a list")
-        for scan in scans:
-            if isinstance(scan, dict) and scan.get("reference") == scan_id:
-                values = scan.get("transform")
-                if not isinstance(values, list) or len(values) != 16:
-                    raise ValueError(f"{path}: scan {scan_id}: 'transform' is not 16 numbers")
-                try:
-                    matrix = np.asarray(values, np.float64).reshape(4, 4).T  # column-major
-                except (TypeError, ValueError):
-                    raise ValueError(f"{path}: scan {scan_id}: non-numeric transform") from None
-                if not np.all(np.isfinite(matrix)):
-                    raise ValueError(f"{path}: scan {scan_id}: non-finite transform")
-                return check_rigid(matrix, f"{path} (scan {scan_id})")
-    raise ValueError(f"{path}: no scan {scan_id!r} (neither a reference nor a rescan)")
+        found += [s for s in scans if isinstance(s, dict) and s.get("reference") == scan_id]
+    if not found:
+        raise ValueError(f"{path}: no scan {scan_id!r} (neither a reference nor a rescan)")
+    if len(found) > 1:
+        raise ValueError(f"{path}: scan {scan_id!r} is listed {len(found)} times")
+    if found[0] is None:
+        return np.eye(4)
+    values = found[0].get("transform")
+    if not isinstance(values, list) or len(values) != 16:
+        raise ValueError(f"{path}: scan {scan_id}: 'transform' is not 16 numbers")
+    try:
+        matrix = np.asarray(values, np.float64).reshape(4, 4).T  # column-major
+    except (TypeError, ValueError):
+        raise ValueError(f"{path}: scan {scan_id}: non-numeric transform") from None
+    if not np.all(np.isfinite(matrix)):
+        raise ValueError(f"{path}: scan {scan_id}: non-finite transform")
+    return check_rigid(matrix, f"{path} (scan {scan_id})")
 
 
 def scan_id_of(path: str | os.PathLike) -> str:
