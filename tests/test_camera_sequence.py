@@ -129,6 +129,14 @@ def test_intrinsics_and_resize_give_the_known_rays(tmp_path):
     assert row[38] < 0.1 and row[41] > 0.9 and row[39] < 0.5 < row[40]
 
 
+@pytest.mark.parametrize("size", [{"width": 0}, {"height": -3}, {"width": 40.5}])
+def test_a_working_size_that_is_not_a_positive_integer_is_refused(tmp_path, size):
+    """Was: "Camera.fx must be positive" from deep inside (width 0), or PIL's error."""
+    write_folder(tmp_path, [0])
+    with pytest.raises(ValueError, match=r"(width|height) must be an integer >= 1 \(pixels\)"):
+        load_camera_sequence(tmp_path, **size)
+
+
 def test_depth_with_its_own_intrinsics_lands_on_the_right_pixels(tmp_path):
     """A half-size depth image whose principal point is also shifted by 3 px: every working pixel
     gets the depth pixel its ray passes through (depth values encode their pixel)."""

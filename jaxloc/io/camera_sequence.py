@@ -266,10 +266,14 @@ def load_camera_sequence(
     Raises:
         FileNotFoundError: a missing file or folder (the frame's pose, embedding, label image...).
         ValueError: naming the file: malformed or non-rigid poses, unreadable images,
-            embeddings of another dimension or shape, labels without class embeddings.
+            embeddings of another dimension or shape, labels without class embeddings; a
+            ``width`` or ``height`` below 1, ``step`` or ``max_frames`` below 1.
     """
     if step < 1 or (max_frames is not None and max_frames < 1):
         raise ValueError("step and max_frames must be >= 1")
+    for name, size in (("width", width), ("height", height)):
+        if size is not None and (not isinstance(size, int | np.integer) or size < 1):
+            raise ValueError(f"{name} must be an integer >= 1 (pixels), got {size!r}")
     if transform is not None:
         transform = check_rigid(np.asarray(transform, np.float64).reshape(4, 4), "transform")
     source = open_frame_source(path, format)
