@@ -180,6 +180,9 @@ def test_numbers_beyond_float32_in_a_file_are_refused_naming_it(tmp_path):
     complex_refused = r"complex\.npy: expected a \(K, d\) array of real numbers"
     with pytest.raises(ValueError, match=complex_refused):
         load_embedding_table(tmp_path / "complex.npy")
+    np.save(tmp_path / "empty.npy", np.zeros((3, 0)))  # was: a table of 0-dimensional embeddings
+    with pytest.raises(ValueError, match=r"empty\.npy: expected a \(K, d\) array, got the empty"):
+        load_embedding_table(tmp_path / "empty.npy")
 
 
 def test_semantickitti_scan_truncated_or_mismatched(tmp_path):

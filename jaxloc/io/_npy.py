@@ -30,8 +30,8 @@ def read_numeric_npy(path: Path, ndim: int, layout: str, what: str) -> np.ndarra
     Raises:
         FileNotFoundError: no such file.
         ValueError: naming the file: not an ``.npy`` of real numbers (pickled objects and
-            complex numbers are refused), another rank, NaN or inf, or a value beyond float32's
-            range.
+            complex numbers are refused), another rank, an empty axis, NaN or inf, or a value
+            beyond float32's range.
     """
     if not path.is_file():
         raise FileNotFoundError(2, f"No such file ({what})", str(path))
@@ -47,6 +47,8 @@ def read_numeric_npy(path: Path, ndim: int, layout: str, what: str) -> np.ndarra
             f"{path}: expected a {layout} array of real numbers, got shape {array.shape} of "
             f"{array.dtype}"
         )
+    if 0 in array.shape:
+        raise ValueError(f"{path}: expected a {layout} array, got the empty shape {array.shape}")
     if not np.all(np.isfinite(array)):
         raise ValueError(f"{path}: embeddings contain NaN or inf")
     check_float32_range(array, str(path))
