@@ -30,10 +30,31 @@ DEFAULT_LEAF_SIZE = 4
 MEDIAN_DEPTH = 32
 #: Default traversal stack size (``Capacity.stack_size``): the BVH must be shallower than this.
 DEFAULT_STACK_SIZE = 64
+#: Largest ``Capacity.leaf_size``: traversal tests every slot of a leaf, so bigger leaves only cost
+#: time, and a leaf's arrays grow with it (16x the default).
+MAX_LEAF_SIZE = 64
+#: Largest ``Capacity.stack_size``: twice the deepest tree :func:`build_bvh` makes over at most
+#: ``MAX_COUNT`` triangles (``MEDIAN_DEPTH + 30 + 1`` < 64 levels); each ray lane holds a stack.
+MAX_STACK_SIZE = 128
+#: Largest count field of a :class:`Capacity`: node and leaf rows together (N + L) and every
+#: index stay within int32.
+MAX_COUNT = 2**30
 
 
 class Capacity(NamedTuple):
-    """Static array sizes of a scene graph. Maps of equal capacity share compiled functions."""
+    """Static array sizes of a scene graph. Maps of equal capacity share compiled functions.
+
+    Attributes:
+        objects: O, object rows (>= the map's objects, >= 1).
+        triangles: T, triangle rows (>= the map's triangles, >= 1).
+        nodes: N, internal BVH node rows (>= the tree's, >= 0: a one-leaf tree has none).
+        leaves: L, BVH leaf rows (>= the tree's, >= 1).
+        edges: E, adjacency rows (>= the map's edges, >= 0).
+        embedding_dim: d, the embeddings' dimension (exactly the map's, >= 1).
+        leaf_size: K, most triangles per BVH leaf, in [1, MAX_LEAF_SIZE].
+        stack_size: traversal stack entries, in [1, MAX_STACK_SIZE], above the tree's depth.
+    Counts are at most ``MAX_COUNT``; :meth:`check` enforces these ranges.
+    """
 
     objects: int
     triangles: int
@@ -58,6 +79,34 @@ class Capacity(NamedTuple):
             nodes=max(self.nodes, other.nodes),
             leaves=max(self.leaves, other.leaves),
             edges=max(self.edges, other.edges),
+        )
+
+    def check(self) -> Capacity:
+        """``self`` if every field is an integer in its range (see the class), else ValueError
+        naming the field. Whether a map's arrays fit is checked when they are padded."""
+        lowest = {"nodes": 0, "edges": 0}
+        highest = {"leaf_size": MAX_LEAF_SIZE, "stack_size": MAX_STACK_SIZE}
+        for name, value in self._asdict().items():
+            low, high = lowest.get(name, 1), highest.get(name, MAX_COUNT)
+            is_int = isinstance(value, int | np.integer) and not isinstance(value, bool)
+            if not is_int or not low <= value <= high:
+                raise ValueError(
+                    f"Capacity.{name} must be an integer in [{low}, {high}], got {value}"
+                )
+        return self
+
+    def array_bytes(self) -> int:
+        """Bytes of the arrays of a :class:`SceneGraph` of this capacity (host or device)."""
+        per_object = 4 + 4 * self.embedding_dim + 4 * 3 + 1  # label, embedding, colour, valid
+        per_triangle = 4 * 9 + 4 + 4 * 9  # corners, owner, corner colours
+        per_leaf = 4 * 6 + (4 * 9 + 4) * self.leaf_size  # box, slots' v0/e1/e2 and ids
+        return (
+            self.objects * per_object
+            + self.triangles * per_triangle
+            + self.nodes * (4 * 6 + 4 * 2)  # box, children
+            + self.leaves * per_leaf
+            + self.edges * 4 * 2
+            + 4 * (1 + 6)  # root, scene bounds
         )
 
 
@@ -218,12 +267,15 @@ def _objects_to_arrays(meshes, labels, embeddings, colors, edges):
         raise ValueError(f"embeddings must have shape (n, d) = ({n}, d), got {emb.shape}")
     if not np.all(np.isfinite(emb)):
         raise ValueError("embeddings contain NaN or inf")
-    norms = np.linalg.norm(emb, axis=1)
-    if np.any(norms == 0):
+    # each row scaled by its largest entry before the norm, so that neither 1e200 (whose square
+    # overflows) nor 1e-200 (whose square underflows to a "zero" vector) loses its direction
+    largest = np.max(np.abs(emb), axis=1) if emb.shape[1] else np.zeros(n)
+    if np.any(largest == 0):
         raise ValueError(
-            f"embeddings of objects {np.flatnonzero(norms == 0).tolist()} are zero vectors"
+            f"embeddings of objects {np.flatnonzero(largest == 0).tolist()} are zero vectors"
         )
-    emb = (emb / norms[:, None]).astype(np.float32)
+    emb = emb / largest[:, None]
+    emb = (emb / np.linalg.norm(emb, axis=1)[:, None]).astype(np.float32)
     if colors is not None:
         colors = np.asarray(colors, np.float64)
         if colors.shape != (n, 3):
@@ -317,6 +369,13 @@ def _pad_bounds(bvh, capacity: Capacity) -> np.ndarray:
 
 
 def _build(labels, emb, obj_col, edges, tris, tri_obj, tri_col, capacity=None) -> SceneGraph:
+    if capacity is not None:  # before the build: leaf_size 0 would never finish splitting
+        capacity = capacity.check()
+        if emb.shape[1] != capacity.embedding_dim:
+            raise ValueError(
+                f"embedding dimension {emb.shape[1]} differs from the capacity's "
+                f"{capacity.embedding_dim}"
+            )
     leaf_size = DEFAULT_LEAF_SIZE if capacity is None else capacity.leaf_size
     stack_size = DEFAULT_STACK_SIZE if capacity is None else capacity.stack_size
     bvh = build_bvh(tris, leaf_size=leaf_size, median_depth=MEDIAN_DEPTH)
@@ -332,11 +391,6 @@ def _build(labels, emb, obj_col, edges, tris, tri_obj, tri_col, capacity=None) -
             embedding_dim=emb.shape[1],
             leaf_size=leaf_size,
             stack_size=stack_size,
-        )
-    if emb.shape[1] != capacity.embedding_dim:
-        raise ValueError(
-            f"embedding dimension {emb.shape[1]} differs from the capacity's "
-            f"{capacity.embedding_dim}"
         )
     valid = np.zeros(capacity.objects, bool)
     valid[: labels.shape[0]] = True

@@ -14,7 +14,7 @@ import trimesh
 from conftest import cast_padded, random_meshes, random_rays
 
 from jaxloc import raycast
-from jaxloc.io import MapFormatError
+from jaxloc.io import MapFormatError, scene_map
 from jaxloc.io.meshes import load_objects_file, load_scene_from_files
 from jaxloc.io.scene_map import load_scene, save_scene
 from jaxloc.scene import Capacity, SceneGraph
@@ -421,12 +421,102 @@ def test_pickled_objects_are_never_loaded(saved, tmp_path):
             {"capacity": np.array([40, 10, 496, 497, 0, 8, 4, 64], np.int64)},
             "raise Capacity.triangles",
         ),
+        # colours as from_meshes takes them: finite RGB in [0, 1]
+        (
+            {"object_colors": np.full((40, 3), 5.0, np.float32)},
+            r"'object_colors' must be RGB in \[0, 1\], found \[5, 5\]",
+        ),
+        (
+            {"object_colors": np.full((40, 3), -1.0, np.float32)},
+            r"'object_colors' must be RGB in \[0, 1\], found \[-1, -1\]",
+        ),
+        (
+            {"triangle_colors": np.full((1440, 3, 3), 300.0, np.float32)},
+            r"'triangle_colors' must be RGB in \[0, 1\], found \[300, 300\]",
+        ),
+        # every object has a mesh, as from_meshes requires
+        (
+            {"triangle_object": np.zeros(1440, np.int32)},
+            r"39 objects own no triangle \(first \[1, 2, 3",
+        ),
     ],
 )
 def test_invalid_map_contents_raise(saved, tmp_path, change, match, scene):
     assert scene.num_triangles == 1440 and scene.num_objects == 40  # the sizes used above
     with pytest.raises(MapFormatError, match=match):
         load_scene(_rewrite(saved, tmp_path / "bad.npz", **change))
+
+
+def _capacity_record(scene: SceneGraph, **fields) -> np.ndarray:
+    """The scene's capacity as a map file stores it, with some fields replaced."""
+    return np.array(tuple(scene.capacity._replace(**fields)), np.int64)
+
+
+@pytest.mark.timeout(60)  # leaf_size 0 used to make the BVH build split forever
+@pytest.mark.parametrize(
+    "fields, match",
+    [
+        ({"leaf_size": 0}, r"Capacity.leaf_size must be an integer in \[1, 64\], got 0"),
+        ({"leaf_size": -1}, r"Capacity.leaf_size must be an integer in \[1, 64\], got -1"),
+        ({"leaf_size": 65}, r"Capacity.leaf_size must be an integer in \[1, 64\], got 65"),
+        ({"stack_size": 0}, r"Capacity.stack_size must be an integer in \[1, 128\], got 0"),
+        ({"stack_size": 10**11}, r"Capacity.stack_size must be an integer in \[1, 128\]"),
+        ({"objects": 10**15}, r"Capacity.objects must be an integer in \[1, 1073741824\]"),
+        ({"objects": -1}, r"Capacity.objects must be an integer in \[1, 1073741824\], got -1"),
+        ({"triangles": 0}, r"Capacity.triangles must be an integer in \[1, 1073741824\]"),
+        ({"nodes": -1}, r"Capacity.nodes must be an integer in \[0, 1073741824\], got -1"),
+        ({"leaves": 0}, r"Capacity.leaves must be an integer in \[1, 1073741824\], got 0"),
+        ({"edges": -1}, r"Capacity.edges must be an integer in \[0, 1073741824\], got -1"),
+        ({"embedding_dim": 0}, r"Capacity.embedding_dim must be an integer in \[1, 1073741824\]"),
+    ],
+)
+def test_out_of_range_capacity_in_a_map_file_raises_at_once(saved, tmp_path, scene, fields, match):
+    path = _rewrite(saved, tmp_path / "bad.npz", capacity=_capacity_record(scene, **fields))
+    with pytest.raises(MapFormatError, match=match):
+        load_scene(path)
+
+
+@pytest.mark.timeout(60)
+def test_capacity_array_bytes_are_the_scene_graphs_own(scene):
+    """The padding allowance is measured by ``Capacity.array_bytes``: exactly the arrays' bytes."""
+    arrays = [np.asarray(leaf) for leaf in jax.tree.leaves(scene)]
+    assert scene.capacity.array_bytes() == sum(a.nbytes for a in arrays)
+
+
+def test_embeddings_far_from_unit_length_keep_their_direction():
+    """1e200 (its square overflows: the map stored a zero embedding) and 1e-200 (its square
+    underflows: it was refused as a zero vector) normalise like any other embedding."""
+    scene = SceneGraph.from_meshes([_box(), _box()], [0, 1], [[1e200, 1e200], [3e-200, -4e-200]])
+    np.testing.assert_allclose(
+        np.asarray(scene.embeddings)[:2], [[0.5**0.5, 0.5**0.5], [0.6, -0.8]], rtol=1e-6
+    )
+    with pytest.raises(ValueError, match=r"embeddings of objects \[1\] are zero vectors"):
+        SceneGraph.from_meshes([_box(), _box()], [0, 1], [[1.0, 0.0], [0.0, 0.0]])
+
+
+def test_out_of_range_capacity_is_refused_before_the_bvh_build():
+    capacity = Capacity(1, 12, 0, 1, 0, 1, leaf_size=0)
+    with pytest.raises(ValueError, match=r"Capacity.leaf_size must be an integer in \[1, 64\]"):
+        SceneGraph.from_meshes([_box()], [0], [[1.0]], capacity=capacity)
+    with pytest.raises(ValueError, match="Capacity.objects must be an integer"):
+        SceneGraph.from_meshes([_box()], [0], [[1.0]], capacity=capacity._replace(objects=2.5))
+
+
+def test_map_file_capacity_may_pad_the_content_only_by_the_allowance(
+    saved, tmp_path, scene, monkeypatch
+):
+    # in range field by field, but 32 GiB of node rows for a map of 1440 triangles
+    huge = _capacity_record(scene, nodes=2**30)
+    with pytest.raises(MapFormatError, match=r"pads the map by 32768 MiB, more than the 1024 MiB"):
+        load_scene(_rewrite(saved, tmp_path / "huge.npz", capacity=huge))
+    monkeypatch.setattr(scene_map, "MAX_PADDING_BYTES", 2**20)
+    over = _capacity_record(scene, edges=2**18)  # 2 MiB of edge rows
+    with pytest.raises(MapFormatError, match=r"pads the map by 2 MiB, more than the 1 MiB"):
+        load_scene(_rewrite(saved, tmp_path / "over.npz", capacity=over))
+    padded = _capacity_record(scene, objects=40 + 1000, edges=100)
+    loaded = load_scene(_rewrite(saved, tmp_path / "padded.npz", capacity=padded))
+    assert loaded.capacity == scene.capacity._replace(objects=1040, edges=100)
+    _assert_scenes_equal(load_scene(saved), scene)  # a map's own capacity pads by nothing
 
 
 # ----------------------------------------------------------------------------- mesh files

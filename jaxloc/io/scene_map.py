@@ -23,6 +23,11 @@ from jaxloc.scene import Capacity, SceneGraph
 FORMAT_NAME = "jaxloc.SceneGraph"
 #: The scene-graph map file version this module writes and reads.
 FORMAT_VERSION = 1
+#: Most bytes a map file's capacity may pad its content by (1 GiB). Padding a map to a shared,
+#: larger capacity is legitimate (one compiled function for several maps), so a capacity may
+#: exceed the file's counts; but a file of a few kilobytes must not make the loader allocate
+#: terabytes. Measured by :meth:`Capacity.array_bytes` above what the content can need.
+MAX_PADDING_BYTES = 2**30
 
 _SAVED = {
     # name: (dtype, trailing shape or None for 1-D)
@@ -109,11 +114,40 @@ def save_scene(
     write_npz_atomic(path, payload)
 
 
+def _checked_capacity(path: Path, record: np.ndarray, need: Capacity) -> Capacity:
+    """The capacity a map file records, if each field is in range (:meth:`Capacity.check`) and
+    it pads the arrays the content needs by at most ``MAX_PADDING_BYTES``.
+
+    Args:
+        path: the map file, for messages.
+        record: (8,) int64 capacity fields, in :class:`Capacity` order.
+        need: the content's counts, with nodes and leaves as many as a BVH over its triangles can
+            have (a leaf holds >= 1 triangle, so <= T leaves and T - 1 internal nodes): an upper
+            bound on the arrays the content needs, known before the tree is built. Whether the
+            capacity holds the content is checked when padding, after the build.
+    """
+    try:
+        capacity = Capacity(*(int(field) for field in record)).check()
+    except ValueError as err:
+        raise MapFormatError(f"{path}: {err}") from None
+    need = need._replace(leaf_size=capacity.leaf_size, stack_size=capacity.stack_size)
+    padding = capacity.array_bytes() - need.array_bytes()
+    if padding > MAX_PADDING_BYTES:
+        raise MapFormatError(
+            f"{path}: capacity {tuple(capacity)} pads the map by {padding / 2**20:.0f} MiB, more "
+            f"than the {MAX_PADDING_BYTES / 2**20:.0f} MiB a map file may add"
+        )
+    return capacity
+
+
 def load_scene(path: str | os.PathLike) -> SceneGraph:
     """Load and validate a map written by :func:`save_scene` (never unpickles).
 
-    Raises :class:`MapFormatError` for a corrupt, truncated, foreign or newer-version file, or one
-    whose arrays have wrong shapes, dtypes or non-finite values.
+    Raises :class:`MapFormatError` naming the array or field for a corrupt, truncated, foreign or
+    newer-version file, or one whose arrays have wrong shapes, dtypes or non-finite values,
+    colours outside [0, 1], an object without triangles, indices out of range, or a capacity
+    field out of range (:meth:`Capacity.check`), too small for the content, or padding it by more
+    than ``MAX_PADDING_BYTES`` (checked before anything is built or allocated).
     """
     path = Path(path)
     content = read_map_file(path, FORMAT_NAME, FORMAT_VERSION, "scene graph")
@@ -156,7 +190,19 @@ def load_scene(path: str | os.PathLike) -> SceneGraph:
         raise MapFormatError(f"{path}: object indices out of range")
     if np.any(content["labels"] < 0):
         raise MapFormatError(f"{path}: negative labels")
-    capacity = Capacity(*(int(c) for c in content["capacity"]))
+    for key in ("object_colors", "triangle_colors"):  # from_meshes's colours: RGB in [0, 1]
+        low, high = float(content[key].min()), float(content[key].max())
+        if low < 0 or high > 1:
+            raise MapFormatError(
+                f"{path}: '{key}' must be RGB in [0, 1], found [{low:g}, {high:g}]"
+            )
+    bare = np.flatnonzero(np.bincount(tri_obj, minlength=n) == 0)
+    if bare.size:  # from_meshes refuses an object whose mesh has no (non-degenerate) triangle
+        raise MapFormatError(
+            f"{path}: {bare.size} objects own no triangle (first {bare[:10].tolist()})"
+        )
+    need = Capacity(n, t, t - 1, t, edges.shape[0], emb.shape[1])
+    capacity = _checked_capacity(path, content["capacity"], need)
     try:
         return SceneGraph.from_arrays(
             content["labels"],
