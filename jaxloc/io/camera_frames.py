@@ -27,8 +27,12 @@ from PIL import Image
 
 from jaxloc.camera import Camera
 from jaxloc.geometry import R_BODY_CAM
+from jaxloc.io._numbering import check_distinct_numbers
 from jaxloc.io._rigid import rigid_mask
 from jaxloc.io._text import data_lines
+
+#: How two camera frame files of one number are reported (:func:`check_distinct_numbers`).
+FRAME_NUMBER_CLASH = "frame files with the same number"
 
 #: What Pillow can raise on a damaged image file (its plugins report some broken headers and
 #: streams as SyntaxError, struct.error, zlib.error or IndexError).
@@ -220,7 +224,7 @@ def frame_numbers(folder: Path, suffixes: tuple[str, ...]) -> list[tuple[int, Pa
         FileNotFoundError: no such folder.
         ValueError: a file not named by its number (ASCII digits), two files of one number
             (``1.jpg`` and ``01.jpg``, ``1.jpg`` and ``1.png``: which is the frame would be a
-            guess; :func:`check_distinct_frame_numbers`), no such file at all.
+            guess), no such file at all.
     """
     if not folder.is_dir():
         raise FileNotFoundError(2, "No such folder", str(folder))
@@ -233,13 +237,5 @@ def frame_numbers(folder: Path, suffixes: tuple[str, ...]) -> list[tuple[int, Pa
     if not found:
         raise ValueError(f"{folder}: no frames ({' or '.join(suffixes)} files)")
     found.sort()
-    check_distinct_frame_numbers(found)
+    check_distinct_numbers(found, FRAME_NUMBER_CLASH)
     return found
-
-
-def check_distinct_frame_numbers(numbered: list[tuple[int, Path]]) -> None:
-    """Raise ``ValueError`` naming both files when two of the (number, file) pairs, sorted by
-    number, share a number."""
-    for (number, first), (other, second) in zip(numbered, numbered[1:], strict=False):
-        if number == other:
-            raise ValueError(f"{first} and {second}: two frame files with the same number {number}")

@@ -40,6 +40,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxloc.io import helipr
+from jaxloc.io._numbering import check_distinct_numbers
 from jaxloc.io._text import data_lines, parse_finite_floats
 from jaxloc.io.poses import PoseFile, check_rigid, match_timestamps, read_pose_file, seconds_to_ns
 from jaxloc.io.semantickitti import LabelledScan, load_semantickitti_scan
@@ -209,16 +210,12 @@ def assign_poses(
 
 
 def check_distinct_scan_numbers(bins: list[Path], what: str = "number") -> None:
-    """Raise ``ValueError`` naming both files when two scans sorted by :func:`scan_order_key`
-    are named by the same number (``1.bin`` and ``01.bin``): the scan of that number, its place
-    in the order and its pose or stamp would be ambiguous. ``what`` names the number in the
-    message ("number", or "stamp" for HeLiPR's nanosecond names)."""
-    for first, second in zip(bins, bins[1:], strict=False):
-        first_key, second_key = scan_order_key(first), scan_order_key(second)
-        if first_key[0] == second_key[0] == 0 and first_key[1] == second_key[1]:
-            raise ValueError(
-                f"{first} and {second}: two scans named by the same {what} {first_key[1]}"
-            )
+    """Raise ``ValueError`` naming both files when two of the scans, sorted by
+    :func:`scan_order_key`, are named by the same number (``1.bin`` and ``01.bin``): the scan of
+    that number, its place in the order and its pose or stamp would be ambiguous. ``what`` names
+    the number in the message ("number", or "stamp" for HeLiPR's nanosecond names)."""
+    numbered = [(key[1], path) for path in bins if (key := scan_order_key(path))[0] == 0]
+    check_distinct_numbers(numbered, f"scans named by the same {what}")
 
 
 def _kitti_scan_files(root: Path) -> tuple[list[Path], list[Path]]:

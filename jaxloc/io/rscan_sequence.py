@@ -31,10 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxloc.io._numbering import check_distinct_numbers
 from jaxloc.io.camera_frames import (
+    FRAME_NUMBER_CLASH,
     Frame,
     FrameSource,
-    check_distinct_frame_numbers,
     check_intrinsics,
     check_rigid,
     depth_metres,
@@ -121,7 +122,7 @@ def open_rscan_sequence(path: str | os.PathLike) -> FrameSource:
     numbered = sorted((int(m.group(1)), p) for p in folder.iterdir() if (m := _FRAME.match(p.name)))
     if not numbered:
         raise ValueError(f"{folder}: no frames (frame-NNNNNN.color.jpg files)")
-    check_distinct_frame_numbers(numbered)  # frame-000001 and frame-1
+    check_distinct_numbers(numbered, FRAME_NUMBER_CLASH)  # frame-000001 and frame-1
     stems = {number: path.name.removesuffix(".color.jpg") for number, path in numbered}
 
     def load(number: int, with_depth: bool) -> Frame:
