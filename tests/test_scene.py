@@ -477,6 +477,21 @@ def test_out_of_range_capacity_in_a_map_file_raises_at_once(saved, tmp_path, sce
 
 
 @pytest.mark.timeout(60)
+def test_save_refuses_a_map_the_loader_would_refuse(tmp_path, monkeypatch):
+    """Padding beyond the allowance: was written, then refused by ``load_scene``."""
+    scene = SceneGraph.from_meshes([_box()], [0], [[1.0]])
+    padded = SceneGraph.from_meshes(
+        [_box()], [0], [[1.0]], capacity=scene.capacity._replace(edges=2**18)
+    )
+    monkeypatch.setattr(scene_map, "MAX_PADDING_BYTES", 2**20)
+    path = tmp_path / "padded.npz"
+    with pytest.raises(ValueError, match=r"pads the map by 2 MiB, more than the 1 MiB .*nothing"):
+        save_scene(padded, path)
+    assert not path.exists()
+    save_scene(scene, path)  # its own capacity pads by nothing
+    _assert_scenes_equal(load_scene(path), scene)
+
+
 def test_capacity_array_bytes_are_the_scene_graphs_own(scene):
     """The padding allowance is measured by ``Capacity.array_bytes``: exactly the arrays' bytes."""
     arrays = [np.asarray(leaf) for leaf in jax.tree.leaves(scene)]

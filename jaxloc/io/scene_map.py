@@ -85,6 +85,10 @@ def save_scene(
     BVH is rebuilt deterministically on load, so a load gives back identical arrays. ``classes``
     (optional) are stored beside them (:func:`load_class_embeddings` reads them back); their
     dimension must be the scene's embedding dimension.
+
+    Raises:
+        ValueError: class embeddings of another dimension; a capacity that pads the content by
+            more than ``MAX_PADDING_BYTES`` (:func:`load_scene` would refuse the file).
     """
     path = Path(path)
     n = scene.num_objects
@@ -102,6 +106,13 @@ def save_scene(
         "triangle_colors": np.asarray(scene.triangle_colors)[keep_tri],
         "capacity": np.asarray(tuple(scene.capacity), np.int64),
     }
+    need = _content_bound(n, int(keep_tri.sum()), int(keep_edge.sum()), scene.embeddings.shape[1])
+    padding = _padding_bytes(scene.capacity, need)
+    if padding > MAX_PADDING_BYTES:  # load_scene would refuse the file
+        raise ValueError(
+            f"{path}: capacity {tuple(scene.capacity)} pads the map by {padding / 2**20:.0f} MiB, "
+            f"more than the {MAX_PADDING_BYTES / 2**20:.0f} MiB a map file may add: nothing written"
+        )
     if classes is not None:
         classes.check()
         if classes.vectors.shape[1] != scene.embeddings.shape[1]:
@@ -114,6 +125,18 @@ def save_scene(
     write_npz_atomic(path, payload)
 
 
+def _padding_bytes(capacity: Capacity, need: Capacity) -> int:
+    """Bytes by which the arrays of ``capacity`` exceed the most the content ``need`` can use."""
+    need = need._replace(leaf_size=capacity.leaf_size, stack_size=capacity.stack_size)
+    return capacity.array_bytes() - need.array_bytes()
+
+
+def _content_bound(objects: int, triangles: int, edges: int, embedding_dim: int) -> Capacity:
+    """The most a map's content can need: its counts, and as many BVH nodes and leaves as a tree
+    over its triangles can have (a leaf holds >= 1 triangle: <= T leaves, T - 1 inner nodes)."""
+    return Capacity(objects, triangles, triangles - 1, triangles, edges, embedding_dim)
+
+
 def _checked_capacity(path: Path, record: np.ndarray, need: Capacity) -> Capacity:
     """The capacity a map file records, if each field is in range (:meth:`Capacity.check`) and
     it pads the arrays the content needs by at most ``MAX_PADDING_BYTES``.
@@ -121,17 +144,15 @@ def _checked_capacity(path: Path, record: np.ndarray, need: Capacity) -> Capacit
     Args:
         path: the map file, for messages.
         record: (8,) int64 capacity fields, in :class:`Capacity` order.
-        need: the content's counts, with nodes and leaves as many as a BVH over its triangles can
-            have (a leaf holds >= 1 triangle, so <= T leaves and T - 1 internal nodes): an upper
-            bound on the arrays the content needs, known before the tree is built. Whether the
-            capacity holds the content is checked when padding, after the build.
+        need: :func:`_content_bound` of the content: an upper bound on the arrays it needs,
+            known before the tree is built. Whether the capacity holds the content is checked
+            when padding, after the build.
     """
     try:
         capacity = Capacity(*(int(field) for field in record)).check()
     except ValueError as err:
         raise MapFormatError(f"{path}: {err}") from None
-    need = need._replace(leaf_size=capacity.leaf_size, stack_size=capacity.stack_size)
-    padding = capacity.array_bytes() - need.array_bytes()
+    padding = _padding_bytes(capacity, need)
     if padding > MAX_PADDING_BYTES:
         raise MapFormatError(
             f"{path}: capacity {tuple(capacity)} pads the map by {padding / 2**20:.0f} MiB, more "
@@ -201,7 +222,7 @@ def load_scene(path: str | os.PathLike) -> SceneGraph:
         raise MapFormatError(
             f"{path}: {bare.size} objects own no triangle (first {bare[:10].tolist()})"
         )
-    need = Capacity(n, t, t - 1, t, edges.shape[0], emb.shape[1])
+    need = _content_bound(n, t, edges.shape[0], emb.shape[1])
     capacity = _checked_capacity(path, content["capacity"], need)
     try:
         return SceneGraph.from_arrays(
