@@ -20,6 +20,7 @@ set size, sampled from ``/proc/self/status`` along the run, stops growing after 
 from __future__ import annotations
 
 import argparse
+import collections
 import os
 import platform
 import sys
@@ -33,7 +34,6 @@ import numpy as np
 from jaxloc.camera import patch_grid
 from jaxloc.geometry import ego_motion
 from jaxloc.m2loc import build_map, localization_errors, localize_scan, tripletloc_config
-from jaxloc.m2loc._query import TRACE_COUNTS
 from jaxloc.sg2loc.filter import Frame, Region, StepConfig, frames_on_grid, run_pass
 from jaxloc.sg2loc.particles import init_region
 from jaxloc.sg2loc.resampling import KLDConfig
@@ -50,6 +50,16 @@ def _counted_run_pass(key, state, frames, scene, config):
 
 
 RUN_PASS = jax.jit(_counted_run_pass)
+
+#: XLA compilations of this process by function name (``jax.monitoring``).
+COMPILED: collections.Counter[str] = collections.Counter()
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, _, **kw: (
+        COMPILED.update([kw.get("fun_name", "?")])
+        if event == "/jax/core/compile/backend_compile_duration"
+        else None
+    )
+)
 
 
 def memory_mib() -> tuple[float, float]:
@@ -166,12 +176,11 @@ def query_run(num_queries: int, every: int, checkpoint) -> dict:
         successes += bool(result.valid and rte < 7.5 and rre < 10.0)
         if i % every == 0 or i == 1:
             rss, peak = memory_mib()
-            traces = dict(TRACE_COUNTS)
-            samples.append((i, rss, peak, traces.get("describe_query", 0),
-                            traces.get("register_query", 0)))  # fmt: skip
+            compiled = (COMPILED["jit(describe_query)"], COMPILED["jit(registered)"])
+            samples.append((i, rss, peak, *compiled))
             log(
                 f"queries: {i}/{num_queries}  RSS {rss:.0f} MiB  peak {peak:.0f} MiB  "
-                f"traces {traces}  median {1e3 * np.median(times[-every:]):.1f} ms"
+                f"compilations {compiled}  median {1e3 * np.median(times[-every:]):.1f} ms"
             )
             checkpoint(_query_result(samples, run_start, times, successes, sizes, world))
     return _query_result(samples, run_start, times, successes, sizes, world)
@@ -246,7 +255,7 @@ def report(args, filt: dict | None, queries: dict | None) -> str:
             f"{queries['sizes'].max()} "
             f"(median {np.median(queries['sizes']):.0f}).",
             "",
-            f"- traces: describe_query {s[-1][3]}, register_query {s[-1][4]} for {len(t)} queries",
+            f"- compilations: describe_query {s[-1][3]}, the query {s[-1][4]} for {len(t)} queries",
             f"- RSS after query 1: {rss[0]:.0f} MiB; after query {s[1][0] if len(s) > 1 else 1}: "
             f"{rss[min(1, len(rss) - 1)]:.0f} MiB; at the end: {rss[-1]:.0f} MiB",
             f"- per query (wall, incl. host validation and the first compile): median "
@@ -254,7 +263,7 @@ def report(args, filt: dict | None, queries: dict | None) -> str:
             f"total {queries['run_s']:.0f} s",
             f"- success (valid, RTE < 7.5 m, RRE < 10 deg): {queries['success']:.3f}",
             "",
-            "| queries done | RSS MiB | peak RSS MiB | describe traces | register traces |",
+            "| queries done | RSS MiB | peak RSS MiB | describe compiles | query compiles |",
             "|---|---|---|---|---|",
         ]
         lines += [f"| {a} | {b:.0f} | {c:.0f} | {d} | {e} |" for a, b, c, d, e in s]

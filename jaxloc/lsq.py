@@ -37,6 +37,8 @@ import numpy as np
 from jax import Array
 from jax.custom_derivatives import SymbolicZero
 
+from jaxloc._traced import concrete, float32_leaf
+
 #: The robust losses of :class:`RobustLoss` (``RobustLoss.kind``).
 LossKind = Literal["none", "huber", "cauchy", "gnc_tls"]
 #: A residual function ``fn(T, args)`` of :func:`solve_pose` (``residual_fn``, ``prior_fn``).
@@ -48,21 +50,27 @@ class RobustLoss(eqx.Module):
 
     Attributes:
         kind: "none" (plain least squares), "huber", "cauchy" or "gnc_tls" (static).
-        scale: the inlier threshold ``c`` (Huber/Cauchy scale, TLS truncation), residual units.
+        scale: the inlier threshold ``c`` (Huber/Cauchy scale, TLS truncation), residual units
+            (float32, traced).
         gnc_rounds: GNC-TLS outer rounds (static Python int, >= 2).
-        gnc_mu_final: the GNC control parameter reached in the last round (large = pure TLS).
+        gnc_mu_final: the GNC control parameter reached in the last round (large = pure TLS;
+            float32, traced).
     """
 
     kind: LossKind = eqx.field(static=True, default="none")
-    scale: float = 1.0
+    scale: Array = eqx.field(default=1.0, converter=float32_leaf)
     gnc_rounds: int = eqx.field(static=True, default=10)
-    gnc_mu_final: float = 1e4
+    gnc_mu_final: Array = eqx.field(default=1e4, converter=float32_leaf)
 
     def __check_init__(self) -> None:
         if self.kind not in ("none", "huber", "cauchy", "gnc_tls"):
             raise ValueError(f"unknown loss kind {self.kind!r}")
-        if isinstance(self.scale, float | int) and not self.scale > 0:
-            raise ValueError(f"loss scale must be > 0, got {self.scale}")
+        if concrete(self.scale, self.gnc_mu_final) and not (
+            self.scale > 0 and self.gnc_mu_final > 0
+        ):
+            raise ValueError(
+                f"loss scale and gnc_mu_final must be > 0, got {self.scale}, {self.gnc_mu_final}"
+            )
         if self.gnc_rounds < 2:
             raise ValueError(f"gnc_rounds must be >= 2, got {self.gnc_rounds}")
 

@@ -6,9 +6,12 @@ the closed-form pose kept against a misleading prior, ``hypothesis_min_fraction`
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import numpy as np
 import pytest
+from _compilations import COMPILED
 from test_m2loc_hypotheses import numpy_kabsch
 
 from jaxloc.m2loc import (
@@ -21,7 +24,6 @@ from jaxloc.m2loc import (
     m2loc_config,
     map_grid,
 )
-from jaxloc.m2loc._query import TRACE_COUNTS
 from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 
@@ -113,7 +115,7 @@ def fixed_queries(plain_map, option_map, queries) -> list[int]:
     the queries whose pose the option turns from wrong (> 7.5 m) to right."""
     for m in (plain_map, option_map):
         localize_scan(m, None, queries[0].points, queries[0].labels)  # compile both
-    traces = dict(TRACE_COUNTS)
+    compiled = len(COMPILED)
     fixed = []
     for index, q in enumerate(queries):
         if len(q.points) > 32:  # above the fixture's query capacity
@@ -130,7 +132,7 @@ def fixed_queries(plain_map, option_map, queries) -> list[int]:
         before, after = (localization_errors(r.pose, q.T_map_scan)[0] for r in (plain, option))
         if before > 7.5 and after < 7.5:
             fixed.append(index)
-    assert dict(TRACE_COUNTS) == traces  # one compilation per map
+    assert COMPILED[compiled:] == []  # one compilation per map
     return fixed
 
 
@@ -251,3 +253,23 @@ def test_a_place_that_repeats_elsewhere_is_refused_as_ambiguous(world):
     assert m2loc_config(3).ambiguity_margin == 0.0
     assert m2loc_config(3, hypotheses=0).ambiguity_margin is None
     assert m2loc_config(3, robust=False).ambiguity_margin is None
+
+
+def test_the_search_thresholds_are_traced(world, queries):
+    """retry_inlier_fraction, hypothesis_min_support and hypothesis_min_fraction decide whether the
+    searched pose replaces the maximum clique's wrong one: each, changed on the built map, keeps
+    the wrong pose of the fixed query, with the same compiled program."""
+    triplet_map = build_map(world.points, world.labels, config(hypotheses=64))
+    q = queries[HYPOTHESES_FIXED[0]]
+    searched = localize_scan(triplet_map, None, q.points, q.labels)
+    assert localization_errors(searched.pose, q.T_map_scan)[0] < 7.5
+    before = len(COMPILED)
+    for name, value in (
+        ("retry_inlier_fraction", 0.0),
+        ("hypothesis_min_support", 100),
+        ("hypothesis_min_fraction", 1.0),
+    ):
+        changed = dataclasses.replace(triplet_map.config, **{name: value})
+        result = localize_scan(triplet_map, None, q.points, q.labels, config=changed)
+        assert localization_errors(result.pose, q.T_map_scan)[0] > 7.5, name
+    assert [c for c in COMPILED[before:] if "registered" in c] == []

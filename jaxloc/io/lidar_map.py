@@ -172,7 +172,7 @@ def load_triplet_map(path: str | os.PathLike) -> TripletMap:
     config = fit_config_to_map(config, content["points"].shape[0], stacklevel=2)
     # device_put, not jnp.asarray: no conversion program compiled per array shape
     arrays = {name: jax.device_put(content[name]) for name in _ARRAYS if name != "has_rsn"}
-    grid = host_map_grid(content["points"], content["classes"], config.verify_radius)
+    grid = host_map_grid(content["points"], content["classes"], float(config.verify_radius))
     return TripletMap(**arrays, has_rsn=bool(content["has_rsn"]), config=config, grid=grid)
 
 

@@ -7,7 +7,9 @@ descriptors (:func:`describe_points`, :func:`describe_map`) -> per-class top-k m
 hypotheses: :func:`best_verified_clique`) -> Kabsch + robust refinement with the
 road-surface-normal prior (:func:`register`). User entry points: :func:`build_map` and
 :func:`localize_scan` (one scan; :func:`prepare_queries` compiles its programs ahead, in the
-background), :func:`localize_scans` (a batch over devices),
+background), :func:`query` (the pure core: a padded scan, :func:`pad_scan`, in a map, under a
+user's ``jit`` and ``vmap``; :func:`with_config` swaps a built map's query settings),
+:func:`localize_scans` (a batch, on one device or split over several),
 :func:`localize_window` (the fused instances of the last scans of a drive, :func:`fuse_scans`),
 :class:`Tracker` (a drive tracked near the odometry prediction, global localization as fallback)
 and :func:`localize_drive` (every scan of a drive or recording, alone, accumulated, tracked or
@@ -90,6 +92,7 @@ from jaxloc.m2loc._localization import (
     localize_scan,
     pad_scan,
     prepare_queries,
+    query,
     query_capacity,
 )
 from jaxloc.m2loc._map import (
@@ -98,6 +101,7 @@ from jaxloc.m2loc._map import (
     build_map,
     fit_config_to_map,
     triplet_map_spec,
+    with_config,
 )
 from jaxloc.m2loc._matching import consistency_graph, match_descriptors
 from jaxloc.m2loc._query import QueryOutput, describe_query, register_query, verified_fraction
@@ -185,6 +189,7 @@ __all__ = [
     "max_clique_exact",
     "max_clique_with_info",
     "point_residuals",
+    "query",
     "query_capacity",
     "register",
     "register_query",
@@ -200,4 +205,5 @@ __all__ = [
     "vertex_descriptor",
     "voxel_downsample",
     "weighted_kabsch",
+    "with_config",
 ]

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import equinox as eqx
+import jax
+from jax import Array
 
+from jaxloc._traced import concrete, float32_leaf, int32_leaf, optional_float32_leaf
 from jaxloc.lsq import RobustLoss
 from jaxloc.m2loc._clique import check_clique_sizes
 from jaxloc.m2loc._descriptors import DescriptorConfig
@@ -11,6 +14,13 @@ from jaxloc.m2loc._descriptors import DescriptorConfig
 
 class TripletConfig(eqx.Module):
     """Localization parameters.
+
+    Settings that fix shapes or the program (``descriptor``, ``top_k``, the switches, the
+    attempt, hypothesis, clique and solver sizes, ``query_capacity``) are static; every threshold,
+    fraction, radius, distance and loss scale is a traced array leaf: a sweep over them compiles
+    once, and configurations that differ only in them stack (``jax.tree.map(lambda *x:
+    jnp.stack(x), *configs)``) for ``jax.vmap`` (:func:`jaxloc.m2loc.query`). Concrete values
+    are range-checked on construction.
 
     Attributes:
         descriptor: descriptor configuration (classes, scales, histograms).
@@ -27,7 +37,8 @@ class TripletConfig(eqx.Module):
         min_verified: fewer verified scan vertices than this (beyond those counted out by
             ``verify_beyond_minimal_set``) gives ``valid = False``, whatever the fraction: in a
             7-vertex scan 3 chance fits make 75 % (default 0; ``m2loc_config``: 4).
-        verify_radius: metres, the verification radius.
+        verify_radius: metres, the verification radius (a map's cell grid for it is static:
+            :func:`~jaxloc.m2loc.with_config` rebuilds it for a larger radius).
         verify_beyond_minimal_set: leave the 3 vertices a pose is determined by out of that
             fraction, ``(verified - 3) / (n - 3)``: they fit the pose by construction, and in a
             small scan they are a large share of it (a chance 3-clique in a 6-vertex scan from
@@ -60,7 +71,7 @@ class TripletConfig(eqx.Module):
         ambiguity_distance: metres; see ``ambiguity_margin``.
         loss: robust loss of the pose refinement (GNC-TLS, 1 m, by default).
         use_rsn: use the road-surface-normal prior when the map has RSN cells.
-        rot_delta_deg: added to an RSN cell's normal std (degrees) for the prior's sigma.
+        rot_delta_deg: added to an RSN cell's normal std (degrees) for the prior's sigma (>= 0).
         query_capacity: static padded query size (None: next power of two >= 32).
         clique_prefilter_size: :func:`max_clique`'s ``prefilter_size``.
         clique_greedy_tiers: :func:`max_clique`'s ``greedy_tiers``.
@@ -72,24 +83,24 @@ class TripletConfig(eqx.Module):
 
     descriptor: DescriptorConfig = DescriptorConfig()
     top_k: int = eqx.field(static=True, default=25)
-    consistency_threshold: float = eqx.field(static=True, default=1.0)
+    consistency_threshold: Array = eqx.field(default=1.0, converter=float32_leaf)
     one_to_one: bool = eqx.field(static=True, default=False)
     registration_attempts: int = eqx.field(static=True, default=1)
-    retry_inlier_fraction: float = eqx.field(static=True, default=0.5)
+    retry_inlier_fraction: Array = eqx.field(default=0.5, converter=float32_leaf)
     hypotheses: int = eqx.field(static=True, default=0)
-    hypothesis_min_support: int = eqx.field(static=True, default=6)
-    hypothesis_min_fraction: float = eqx.field(static=True, default=0.55)
-    ambiguity_margin: float | None = eqx.field(static=True, default=None)
-    ambiguity_distance: float = eqx.field(static=True, default=5.0)
-    min_clique: int = eqx.field(static=True, default=10)
-    min_inliers: int = eqx.field(static=True, default=3)
-    min_inlier_fraction: float = eqx.field(static=True, default=0.5)
-    min_verified: int = eqx.field(static=True, default=0)
-    verify_radius: float = eqx.field(static=True, default=1.5)
+    hypothesis_min_support: Array = eqx.field(default=6, converter=int32_leaf)
+    hypothesis_min_fraction: Array = eqx.field(default=0.55, converter=float32_leaf)
+    ambiguity_margin: Array | None = eqx.field(default=None, converter=optional_float32_leaf)
+    ambiguity_distance: Array = eqx.field(default=5.0, converter=float32_leaf)
+    min_clique: Array = eqx.field(default=10, converter=int32_leaf)
+    min_inliers: Array = eqx.field(default=3, converter=int32_leaf)
+    min_inlier_fraction: Array = eqx.field(default=0.5, converter=float32_leaf)
+    min_verified: Array = eqx.field(default=0, converter=int32_leaf)
+    verify_radius: Array = eqx.field(default=1.5, converter=float32_leaf)
     verify_beyond_minimal_set: bool = eqx.field(static=True, default=False)
     loss: RobustLoss = RobustLoss("gnc_tls", 1.0)
     use_rsn: bool = eqx.field(static=True, default=True)
-    rot_delta_deg: float = eqx.field(static=True, default=1.0)
+    rot_delta_deg: Array = eqx.field(default=1.0, converter=float32_leaf)
     query_capacity: int | None = eqx.field(static=True, default=None)
     clique_prefilter_size: int = eqx.field(static=True, default=256)
     clique_greedy_tiers: tuple[int, ...] = eqx.field(static=True, default=(256, 512))
@@ -99,25 +110,42 @@ class TripletConfig(eqx.Module):
     solver_steps: int = eqx.field(static=True, default=30)
 
     def __check_init__(self) -> None:
-        if self.top_k < 1 or self.min_inliers < 3 or self.min_clique < 1:
+        if self.top_k < 1:
+            raise ValueError("top_k >= 1, min_inliers >= 3 and min_clique >= 1 are required")
+        if self.registration_attempts < 1:
+            raise ValueError("registration_attempts >= 1 and retry_inlier_fraction in [0, 1]")
+        if self.hypotheses < 0:
+            raise ValueError("hypotheses, hypothesis_min_support and min_verified must be >= 0")
+        if self.ambiguity_margin is not None and self.hypotheses < 1:
+            raise ValueError(
+                "ambiguity_margin needs hypotheses > 0, a margin >= 0 and ambiguity_distance > 0"
+            )
+        check_clique_sizes(self.clique_compact_size, self.clique_greedy_tiers)
+        if concrete(*jax.tree.leaves(self)):
+            self._check_values()
+
+    def _check_values(self) -> None:
+        """Range checks of the traced settings (on construction, where they are concrete)."""
+        if self.min_inliers < 3 or self.min_clique < 1:
             raise ValueError("top_k >= 1, min_inliers >= 3 and min_clique >= 1 are required")
         if not self.consistency_threshold > 0:
             raise ValueError("consistency_threshold must be > 0")
-        if self.registration_attempts < 1 or not 0.0 <= self.retry_inlier_fraction <= 1.0:
+        if not 0.0 <= self.retry_inlier_fraction <= 1.0:
             raise ValueError("registration_attempts >= 1 and retry_inlier_fraction in [0, 1]")
-        if min(self.hypotheses, self.hypothesis_min_support, self.min_verified) < 0:
+        if min(self.hypothesis_min_support, self.min_verified) < 0:
             raise ValueError("hypotheses, hypothesis_min_support and min_verified must be >= 0")
         if not 0.0 <= self.min_inlier_fraction <= 1.0 or not self.verify_radius > 0:
             raise ValueError("min_inlier_fraction must be in [0, 1] and verify_radius > 0")
         if not 0.0 <= self.hypothesis_min_fraction <= 1.0:
             raise ValueError("hypothesis_min_fraction must be in [0, 1]")
         if self.ambiguity_margin is not None and not (
-            self.hypotheses > 0 and self.ambiguity_margin >= 0 and self.ambiguity_distance > 0
+            self.ambiguity_margin >= 0 and self.ambiguity_distance > 0
         ):
             raise ValueError(
                 "ambiguity_margin needs hypotheses > 0, a margin >= 0 and ambiguity_distance > 0"
             )
-        check_clique_sizes(self.clique_compact_size, self.clique_greedy_tiers)
+        if not self.rot_delta_deg >= 0:
+            raise ValueError(f"rot_delta_deg must be >= 0, got {self.rot_delta_deg}")
 
 
 def tripletloc_config(**overrides) -> TripletConfig:
@@ -142,8 +170,9 @@ def m2loc_config(
     maximum clique's pose verifies poorly, and the uniqueness check on them (``one_to_one=True,
     hypotheses=256, ambiguity_margin=0.0``: a pose is refused when a pose elsewhere verifies at
     least as well); ``robust=False`` is the paper's M2Loc. ``overrides`` win over both
-    (``registration_attempts=3, hypotheses=0`` is session 7's robust setting; the uniqueness check
-    needs hypotheses, so ``hypotheses=0`` turns it off unless ``ambiguity_margin`` is given)."""
+    (``registration_attempts=3, hypotheses=0`` retries the registration instead of searching
+    hypotheses; the uniqueness check needs hypotheses, so ``hypotheses=0`` turns it off unless
+    ``ambiguity_margin`` is given)."""
     descriptor = DescriptorConfig(
         scale_edges=tuple(scale_edges[:num_scales]), length_feature=length_feature
     )

@@ -35,13 +35,14 @@ from jaxloc.m2loc._accumulation import (
     grow_window,
     require_clique,
 )
+from jaxloc.m2loc._config import TripletConfig
 from jaxloc.m2loc._localization import (
     LocalizationResult,
     localize_scan,
     pad_scan,
     query_capacity,
 )
-from jaxloc.m2loc._map import TripletMap
+from jaxloc.m2loc._map import TripletMap, with_config
 from jaxloc.m2loc._tracking import LOST, RELOCALIZED, TrackConfig, Tracker, track_step
 
 #: The name of each :attr:`DriveResult.status` value (``STATUS_NAMES[TRACKED] == "tracked"``).
@@ -313,6 +314,7 @@ def localize_drive(
     accumulate: int = 1,
     track: bool = False,
     config: DriveConfig | None = None,
+    query_config: TripletConfig | None = None,
     progress: Callable[[int, DriveStep], None] | None = None,
 ) -> DriveResult:
     """Localize every scan of a drive (see the module docstring).
@@ -331,17 +333,21 @@ def localize_drive(
         track: step a :class:`~jaxloc.m2loc.Tracker` over the queries instead of localizing each
             globally.
         config: :class:`DriveConfig` (window growth, the window clique rule, tracking).
+        query_config: the queries' settings (None: the map's; :func:`~jaxloc.m2loc.with_config`).
         progress: called after each scan with its index and :class:`DriveStep`.
 
     Returns:
         A :class:`DriveResult`.
 
     Raises:
-        ValueError: bad settings, odometry missing or of the wrong shape; a scan the source cannot
+        ValueError: bad settings (a ``query_config`` whose descriptor settings differ from the
+            map's), odometry missing or of the wrong shape; a scan the source cannot
             read (its own error, naming the file); a query the pipeline refuses (duplicate
             points, unknown labels...: prefixed with the source's name of the scan).
     """
     config = DriveConfig() if config is None else config
+    if query_config is not None:
+        triplet_map = with_config(triplet_map, query_config)
     source = scans if isinstance(scans, ScanSource) else _ScanList(scans)
     count = len(source)
     least, most, min_instances = _window_sizes(accumulate, config)

@@ -28,11 +28,12 @@ def summarize_localization(
     T_gt: np.ndarray,
     valid: Sequence[bool],
     clique_sizes: Sequence[int],
-    descriptor_ms: Sequence[float],
-    match_ms: Sequence[float],
+    descriptor_ms: Sequence[float] = (),
+    match_ms: Sequence[float] = (),
 ) -> dict[str, float]:
     """Table-I row values: P (%), RTE/RRE mean and std over successes, clique size and times
-    (mean and std over all queries)."""
+    (mean and std over all queries; NaN where no times are given, as for
+    :func:`~jaxloc.m2loc.query`'s untimed results)."""
     rte, rre = localization_errors(T_est, T_gt)
     valid = np.asarray(valid, bool)
     success = valid & (rte < SUCCESS_RTE_M) & (rre < SUCCESS_RRE_DEG)

@@ -8,9 +8,11 @@ import warnings
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from jaxloc._traced import concrete
 from jaxloc.m2loc._config import TripletConfig, m2loc_config
 from jaxloc.m2loc._descriptors import describe_map
 from jaxloc.m2loc._hypotheses import MapGrid, host_map_grid, map_grid
@@ -36,14 +38,16 @@ class TripletMap(eqx.Module):
             bool.
         origin: (3,) float32, subtracted from map coordinates (precision).
         rsn_xy: (M, 2) float32 RSN cell centres minus origin; rsn_normals: (M, 3) unit normals;
-            rsn_sigma: (M,) float32 prior sigma (radians). M = 1 dummy cell when absent.
+            rsn_sigma: (M,) float32 prior sigma (radians, the cell's normal std plus
+            ``config.rot_delta_deg``). M = 1 dummy cell when absent.
         has_rsn: static bool.
-        config: the configuration the descriptors were built with.
-        grid: the vertices sorted into XY cells of side ``config.verify_radius`` for the
-            hypotheses' verification (:func:`map_grid`; :func:`build_map` and
-            :func:`~jaxloc.io.load_triplet_map` build it; None: built inside each query, ~2 ms
-            on DCC04).
-            Rebuild it if you replace ``points`` or ``classes``.
+        config: the configuration the queries run with: its description settings
+            (``config.descriptor``) are the descriptors', its query settings can be swapped
+            (:func:`with_config`).
+        grid: the vertices sorted into XY cells (of static side ``grid.cell``, at least
+            ``config.verify_radius``) for the hypotheses' verification (:func:`map_grid`;
+            :func:`build_map`, :func:`~jaxloc.io.load_triplet_map` and :func:`with_config` build
+            it). Rebuild it if you replace ``points`` or ``classes``.
     """
 
     points: Array
@@ -57,6 +61,10 @@ class TripletMap(eqx.Module):
     has_rsn: bool = eqx.field(static=True)
     config: TripletConfig
     grid: MapGrid | None = None
+
+
+#: The smallest sigma (radians) of the road-normal prior.
+RSN_MIN_SIGMA = 1e-4
 
 
 class SmallMapWarning(UserWarning):
@@ -79,6 +87,62 @@ def fit_config_to_map(
         stacklevel=stacklevel + 1,
     )
     return dataclasses.replace(config, top_k=num_vertices)
+
+
+def with_config(triplet_map: TripletMap, config: TripletConfig) -> TripletMap:
+    """``triplet_map`` with ``config``'s query settings (thresholds, radii, losses, switches and
+    sizes of the query; its ``config`` replaced): what :func:`~jaxloc.m2loc.localize_scan`,
+    :func:`~jaxloc.m2loc.query` and the batch and drive calls run with when given a config.
+
+    Only the description settings must agree with the map's (``config.descriptor``: the
+    descriptors were computed with them). Swapping configurations that differ only in traced
+    settings compiles nothing; ``config`` may hold tracers (inside a user's ``jit`` or ``vmap``).
+    ``top_k`` is fitted to the map (:func:`fit_config_to_map`), the road-normal prior's sigmas
+    follow ``rot_delta_deg``, and a concrete ``verify_radius`` larger than the map grid's cell
+    gets a grid of that cell, built on the host (a new static shape, compiled once). A traced
+    radius uses the map's grid as it is: exact up to ``triplet_map.grid.cell``, above it the
+    hypotheses' verification can only count fewer vertices.
+
+    Raises:
+        ValueError: ``config.descriptor`` differs from the map's, naming both.
+    """
+    old = triplet_map.config
+    if config.descriptor != old.descriptor:
+        raise ValueError(
+            f"the config's descriptor settings {config.descriptor} differ from the map's "
+            f"{old.descriptor}: describe the map again (build_map) with them"
+        )
+    config = fit_config_to_map(config, int(triplet_map.points.shape[0]), stacklevel=2)
+    sigma = triplet_map.rsn_sigma
+    if not (concrete(config.rot_delta_deg) and np.all(config.rot_delta_deg == old.rot_delta_deg)):
+        shift = jnp.deg2rad(jnp.asarray(config.rot_delta_deg) - old.rot_delta_deg)
+        sigma = jnp.maximum(sigma + shift, RSN_MIN_SIGMA)
+    grid = triplet_map.grid
+    radius = config.verify_radius
+    if concrete(radius) and (grid is None or grid.cell < float(radius)):
+        if concrete(triplet_map.points, triplet_map.classes):
+            grid = host_map_grid(
+                np.asarray(triplet_map.points), np.asarray(triplet_map.classes), float(radius)
+            )
+        else:
+            grid = map_grid(triplet_map.points, triplet_map.classes, float(radius))
+    return dataclasses.replace(triplet_map, config=config, rsn_sigma=sigma, grid=grid)
+
+
+def verification_grid(triplet_map: TripletMap) -> MapGrid:
+    """The map's grid for verifying poses with ``config.verify_radius``: ``triplet_map.grid``,
+    or, where it is missing or its cell is smaller than a concrete radius, one built under the
+    trace.
+
+    Raises:
+        ValueError: the map has no grid and the radius is traced.
+    """
+    grid, radius = triplet_map.grid, triplet_map.config.verify_radius
+    if grid is not None and not (concrete(radius) and grid.cell < float(radius)):
+        return grid
+    if not concrete(radius):
+        raise ValueError("a TripletMap without a grid needs a concrete verify_radius (build_map)")
+    return map_grid(triplet_map.points, triplet_map.classes, float(radius))
 
 
 def check_points_labels(
@@ -169,10 +233,10 @@ def build_map(
         origin=device(origin, np.float32),
         rsn_xy=device(rsn_xy, np.float32),
         rsn_normals=device(normals, np.float32),
-        rsn_sigma=device(np.maximum(sigma, 1e-4), np.float32),
+        rsn_sigma=device(np.maximum(sigma, RSN_MIN_SIGMA), np.float32),
         has_rsn=has_rsn,
         config=config,
-        grid=host_map_grid(centred, positions, config.verify_radius),
+        grid=host_map_grid(centred, positions, float(config.verify_radius)),
     )
 
 
@@ -216,5 +280,5 @@ def triplet_map_spec(
         rsn_sigma=shape(rows),
         has_rsn=cells > 0,
         config=config,
-        grid=jax.eval_shape(map_grid, points, classes, config.verify_radius),
+        grid=jax.eval_shape(map_grid, points, classes, float(config.verify_radius)),
     )

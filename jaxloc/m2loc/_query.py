@@ -25,8 +25,6 @@ lose their true correspondences and what each option changes.
 
 from __future__ import annotations
 
-import collections
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -38,10 +36,9 @@ from jaxloc.m2loc._hypotheses import (
     best_hypothesis,
     grid_verified_fraction,
     hypothesis_slots,
-    map_grid,
     verified_hypotheses,
 )
-from jaxloc.m2loc._map import TripletMap
+from jaxloc.m2loc._map import TripletMap, verification_grid
 from jaxloc.m2loc._matching import consistency_graph, match_descriptors
 from jaxloc.m2loc._registration import register
 
@@ -49,16 +46,12 @@ from jaxloc.m2loc._registration import register
 #: ``TripletConfig.verify_beyond_minimal_set``.
 MINIMAL_SET = 3
 
-#: Trace counts of the jitted query functions (tests use them to prove there is no retrace).
-TRACE_COUNTS: collections.Counter[str] = collections.Counter()
-
 
 @eqx.filter_jit
 def describe_query(
     points: Array, classes: Array, mask: Array, config: DescriptorConfig
 ) -> tuple[Array, Array]:
     """Jitted :func:`describe_points` for padded queries ((Nq, 3), (Nq,), (Nq,))."""
-    TRACE_COUNTS["describe_query"] += 1
     return describe_points(points, classes, mask, config)
 
 
@@ -90,7 +83,7 @@ def verified_fraction(
     mask: Array,
     map_points: Array,
     map_classes: Array,
-    radius: float,
+    radius: float | Array,
     discount: int = 0,
 ) -> Array:
     """Fraction of real scan vertices within ``radius`` of a same-class map vertex after ``T``.
@@ -141,7 +134,6 @@ def register_query(
     Returns:
         A :class:`QueryOutput` with ``T_map_scan`` (4, 4) in the map frame (origin added back).
     """
-    TRACE_COUNTS["register_query"] += 1
     config = triplet_map.config
     num_scales, nq, _ = descriptors.shape
     k = matches_per_vertex(triplet_map)
@@ -282,9 +274,7 @@ def register_query(
 
     def hypotheses_of(scale):
         """The verified clique hypotheses of the graph up to ``scale`` (through the map's grid)."""
-        grid = triplet_map.grid
-        if grid is None or grid.cell < config.verify_radius:
-            grid = map_grid(triplet_map.points, triplet_map.classes, config.verify_radius)
+        grid = verification_grid(triplet_map)
 
         def verify_fast(matrix):
             return grid_verified_fraction(

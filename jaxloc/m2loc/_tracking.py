@@ -39,12 +39,13 @@ import jaxlie
 import numpy as np
 from jax import Array
 
+from jaxloc._traced import concrete, float32_leaf, int32_leaf
 from jaxloc.lsq import RobustLoss, solve_pose
 from jaxloc.m2loc._descriptors import describe_points
-from jaxloc.m2loc._hypotheses import MapGrid, grid_verified_fraction, map_grid
+from jaxloc.m2loc._hypotheses import MapGrid, grid_verified_fraction
 from jaxloc.m2loc._localization import PaddedScan
-from jaxloc.m2loc._map import TripletMap
-from jaxloc.m2loc._query import MINIMAL_SET, TRACE_COUNTS, register_query
+from jaxloc.m2loc._map import TripletMap, verification_grid
+from jaxloc.m2loc._query import MINIMAL_SET, register_query
 from jaxloc.m2loc._registration import point_residuals, up_axis_prior
 
 #: :attr:`TrackResult.mode`: the pose came from the local association near the prediction.
@@ -59,7 +60,8 @@ PENDING = 3
 
 
 class TrackConfig(eqx.Module):
-    """Tracking parameters (static).
+    """Tracking parameters: ``association_radius`` (it sets the extent of the grid search),
+    ``confirm`` and ``solver_steps`` are static, the others traced array leaves.
 
     Attributes:
         association_radius: metres; a scan instance is associated with the nearest same-class
@@ -81,18 +83,18 @@ class TrackConfig(eqx.Module):
     """
 
     association_radius: float = eqx.field(static=True, default=3.0)
-    max_coast: int = eqx.field(static=True, default=3)
+    max_coast: Array = eqx.field(default=3, converter=int32_leaf)
     confirm: bool = eqx.field(static=True, default=True)
-    confirm_angle_deg: float = eqx.field(static=True, default=5.0)
+    confirm_angle_deg: Array = eqx.field(default=5.0, converter=float32_leaf)
     loss: RobustLoss = RobustLoss("cauchy", 1.0)
     solver_steps: int = eqx.field(static=True, default=20)
 
     def __check_init__(self) -> None:
         if not self.association_radius > 0:
             raise ValueError(f"association_radius must be > 0, got {self.association_radius}")
-        if self.max_coast < 0 or self.solver_steps < 1:
+        if self.solver_steps < 1 or (concrete(self.max_coast) and self.max_coast < 0):
             raise ValueError("max_coast >= 0 and solver_steps >= 1 are required")
-        if not self.confirm_angle_deg > 0:
+        if concrete(self.confirm_angle_deg) and not self.confirm_angle_deg > 0:
             raise ValueError(f"confirm_angle_deg must be > 0, got {self.confirm_angle_deg}")
 
 
@@ -132,24 +134,33 @@ class TrackResult(eqx.Module):
 
 
 def grid_nearest_same_class(
-    moved: Array, classes: Array, mask: Array, grid: MapGrid, radius: float, bucket: int = 16
+    moved: Array,
+    classes: Array,
+    mask: Array,
+    grid: MapGrid,
+    radius: float | Array,
+    reach: float | None = None,
+    bucket: int = 16,
 ) -> tuple[Array, Array]:
     """Nearest map vertex of the same class within ``radius`` for every scan vertex, through a
     :class:`~jaxloc.m2loc.MapGrid`: the first ``bucket`` vertices of each cell within
-    ``ceil(radius / cell)`` cells of the vertex's own are searched, not the whole map. Equal to the
-    brute force unless a cell holds more than ``bucket`` vertices (then it can only find fewer).
+    ``ceil(reach / cell)`` cells of the vertex's own are searched, not the whole map. Equal to the
+    brute force for ``radius <= reach`` unless a cell holds more than ``bucket`` vertices (then it
+    can only find fewer).
 
     Args:
         moved: (Nq, 3) scan vertices in the map frame (minus the map's origin); classes: (Nq,)
             int32 class positions; mask: (Nq,) bool real vertices.
-        grid: from :func:`~jaxloc.m2loc.map_grid`; radius: metres (static).
+        grid: from :func:`~jaxloc.m2loc.map_grid`; radius: metres (traced).
+        reach: metres (static), the search's extent: a bound of ``radius`` (None: ``radius``,
+            then a Python float).
         bucket: static vertices read per cell.
 
     Returns:
         ``(targets, found)``: (Nq, 3) float32 position of the nearest same-class map vertex and
         (Nq,) bool, True where it is a real scan vertex and one lies within ``radius``.
     """
-    rings = max(1, math.ceil(radius / grid.cell))
+    rings = max(1, math.ceil((radius if reach is None else reach) / grid.cell))
     steps = range(-rings, rings + 1)
     offsets = jnp.array([(dx, dy) for dx in steps for dy in steps], jnp.int32)
     index = jnp.floor((moved[:, :2] - grid.low) / grid.cell).astype(jnp.int32)
@@ -169,14 +180,6 @@ def grid_nearest_same_class(
     return targets, found
 
 
-def _map_grid_of(triplet_map: TripletMap) -> MapGrid:
-    """The map's grid (built under the trace when the map has none of cell >= verify_radius)."""
-    grid, radius = triplet_map.grid, triplet_map.config.verify_radius
-    if grid is None or grid.cell < radius:
-        grid = map_grid(triplet_map.points, triplet_map.classes, radius)
-    return grid
-
-
 class Tracker(eqx.Module):
     """A described map and how to track in it; ``init`` and the pure ``step``.
 
@@ -192,7 +195,9 @@ class Tracker(eqx.Module):
     def init(self) -> TrackState:
         """The state before the first scan: no track (the first step is global)."""
         return TrackState(
-            jnp.eye(4, dtype=jnp.float32), jnp.int32(self.config.max_coast + 1), jnp.array(False)
+            jnp.eye(4, dtype=jnp.float32),
+            jnp.asarray(self.config.max_coast + 1, jnp.int32),
+            jnp.array(False),
         )
 
     def step(
@@ -223,10 +228,13 @@ def _local_pose(tracker: Tracker, scan: PaddedScan, T_pred: Array, grid: MapGrid
     T = jaxlie.SE3.from_matrix(T_pred)
     solved = jnp.array(True)
     count = jnp.int32(0)
-    for radius in (tracker.config.association_radius, config.verify_radius):
+    association = tracker.config.association_radius
+    for radius, reach in ((association, association), (config.verify_radius, grid.cell)):
         matrix = T.as_matrix()
         moved = jnp.matmul(scan.points, matrix[:3, :3].T, precision="highest") + matrix[:3, 3]
-        targets, found = grid_nearest_same_class(moved, scan.classes, scan.mask, grid, radius)
+        targets, found = grid_nearest_same_class(
+            moved, scan.classes, scan.mask, grid, radius, reach
+        )
         solution = solve_pose(
             point_residuals,
             T,
@@ -264,7 +272,7 @@ def _poses_agree(T_a: Array, T_b: Array, config: TrackConfig) -> Array:
     gap = jnp.sum((T_a[:3, 3] - T_b[:3, 3]) ** 2)
     cosine = (jnp.trace(jnp.matmul(T_a[:3, :3].T, T_b[:3, :3], precision="highest")) - 1.0) / 2.0
     return (gap <= config.association_radius**2) & (
-        cosine >= math.cos(math.radians(config.confirm_angle_deg))
+        cosine >= jnp.cos(jnp.deg2rad(config.confirm_angle_deg))
     )
 
 
@@ -282,7 +290,6 @@ def _cast(value, dtype):
 def _track_step(
     tracker: Tracker, state: TrackState, scan: PaddedScan, odometry: Array
 ) -> tuple[TrackState, TrackResult]:
-    TRACE_COUNTS["track_step"] += 1
     triplet_map, config = tracker.triplet_map, tracker.triplet_map.config
     T_pred = jnp.matmul(state.T_map_scan, odometry, precision="highest")
     finite = jnp.all(jnp.isfinite(T_pred))
@@ -292,7 +299,7 @@ def _track_step(
     points, classes, mask = scan
     discount = MINIMAL_SET if config.verify_beyond_minimal_set else 0
 
-    grid = _map_grid_of(triplet_map)
+    grid = verification_grid(triplet_map)
     solved, T_local, count = _local_pose(tracker, scan, T_pred, grid)
     fraction_local = grid_verified_fraction(
         T_local, points, classes, mask, grid, config.verify_radius, discount
