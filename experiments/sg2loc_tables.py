@@ -158,7 +158,7 @@ def run_row(seed, variant, config, scene, episode, num_frames, key):
         if r < starts.shape[0]:
             delta = starts[r] - gt[0]
             delta[3] = float(wrap_angle(delta[3]))
-            half = config.box_half_widths[r - 1]
+            half = float(config.box_half_widths[r - 1])
             inside = bool(np.all(np.abs(delta[:3]) <= half))
             inside &= bool(abs(delta[3]) <= float(config.yaw_half_range))
             row.update({f"c{r}_d{a}": delta[i] for i, a in enumerate(("x", "y", "z"))})

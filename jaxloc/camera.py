@@ -85,6 +85,17 @@ def _patch_of(camera: Camera, uv: np.ndarray, rows: int, cols: int) -> np.ndarra
     return (row * cols + col).astype(np.int32)
 
 
+def _host_grid(
+    camera: Camera, uv: np.ndarray, rows: int, cols: int, shape: tuple[int, int]
+) -> RayGrid:
+    """The grid of rays through ``uv`` (R, 2) on the device: concrete arrays even inside a
+    caller's trace (a grid is built from static sizes only), put without a conversion program."""
+    with jax.ensure_compile_time_eval():
+        uv_device = jax.device_put(uv)
+        patch = jax.device_put(_patch_of(camera, uv, rows, cols))
+    return RayGrid(uv_device, patch, rows, cols, shape)
+
+
 def stride_grid(camera: Camera, stride: int, rows: int = 9, cols: int = 16) -> RayGrid:
     """Rays through every ``stride``-th pixel: u = stride // 2 + k * stride (k = 0, 1, ...).
 
@@ -95,10 +106,7 @@ def stride_grid(camera: Camera, stride: int, rows: int = 9, cols: int = 16) -> R
     us = np.arange(stride // 2, camera.width, stride, dtype=np.float32)
     vs = np.arange(stride // 2, camera.height, stride, dtype=np.float32)
     uu, vv = np.meshgrid(us, vs)
-    uv = np.stack([uu.ravel(), vv.ravel()], axis=-1)
-    return RayGrid(
-        jax.device_put(uv), jax.device_put(_patch_of(camera, uv, rows, cols)), rows, cols, uu.shape
-    )
+    return _host_grid(camera, np.stack([uu.ravel(), vv.ravel()], axis=-1), rows, cols, uu.shape)
 
 
 def patch_grid(camera: Camera, rows: int, cols: int, rays_per_side: int = 1) -> RayGrid:
@@ -113,7 +121,4 @@ def patch_grid(camera: Camera, rows: int, cols: int, rays_per_side: int = 1) -> 
     us = (np.arange(cols)[:, None] + sub[None, :]).ravel() * pw - 0.5
     vs = (np.arange(rows)[:, None] + sub[None, :]).ravel() * ph - 0.5
     uu, vv = np.meshgrid(us.astype(np.float32), vs.astype(np.float32))
-    uv = np.stack([uu.ravel(), vv.ravel()], axis=-1)
-    return RayGrid(
-        jax.device_put(uv), jax.device_put(_patch_of(camera, uv, rows, cols)), rows, cols, uu.shape
-    )
+    return _host_grid(camera, np.stack([uu.ravel(), vv.ravel()], axis=-1), rows, cols, uu.shape)

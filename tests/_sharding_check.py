@@ -141,7 +141,7 @@ def engine_call_checks(mesh) -> dict:
 
 def localize_checks(mesh, engine: str = "auto", progress: bool = False) -> dict:
     """The user API: ``sg2loc.localize`` with and without ``mesh`` (one round, 3 frames); with
-    ``progress`` also the progress bar's frame-by-frame programs with ``mesh``."""
+    ``progress`` also the scan with the progress bar's host callback, with ``mesh``."""
     scene = tiny.scene()
     config = sg2loc.SG2LocConfig(
         capacity=tiny.CAPACITY,

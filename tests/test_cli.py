@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _compilations import compilations
 
 from jaxloc.cli import main
 from jaxloc.io import load_semantickitti_scan
@@ -319,20 +320,16 @@ TINY_SG2LOC = ["--frames", "2", "--particles", "32", "--width", "112", "--height
 
 def test_demo_tiny(tmp_path, capsys):
     """... and its warm-up (the filter's programs compiled from a placeholder of the query's
-    sizes while the query is rendered) traced the programs its localize ran: once each (the two
-    rounds share the stride, hence the scoring), not again for the real sequence."""
-    from jaxloc.sg2loc import localization
-
+    sizes while the query is rendered) compiled the rounds' scans its localize ran: one for round
+    0 and one for round 1 (a box on the same stride), none again for the real sequence."""
     figure = tmp_path / "demo.png"
-    traced = dict(localization.TRACE_COUNTS)
-    code, out, err = run(["demo", *TINY_SG2LOC, "--strides", "8,8", "--out", figure], capsys)
+    with compilations() as compiled:
+        code, out, err = run(["demo", *TINY_SG2LOC, "--strides", "8,8", "--out", figure], capsys)
     assert code == 0, err
-    assert {k: n - traced[k] for k, n in localization.TRACE_COUNTS.items()} == {
-        "predict": 1,
-        "score": 1,
-        "update": 1,
-    }
+    rounds = [c for c in compiled if c.endswith(": jit(_round)")]
+    assert rounds == ["jaxloc-warm-up_0: jit(_round)"] * 2
     assert re.search(r"frame 2: (not )?localized, position error \d+\.\d+ m", out)
+    assert "round 2/2 (stride 8)" in err  # the progress bar, ticked from inside the scans
     assert figure.read_bytes().startswith(b"\x89PNG")
 
 

@@ -72,7 +72,7 @@ def test_localize_with_a_mesh_equals_one_device(measured):
     assert not measured["localize_nan"]
     assert measured["localize_poses_diff"] <= 1e-5
     assert measured["localize_particles_devices"] == 4
-    # with a progress bar (three programs per frame): the scan's counts and poses, still sharded
+    # with a progress bar (a host callback in the scan): the same counts and poses, still sharded
     assert measured["progress_counts_equal"]
     assert measured["progress_poses_diff"] <= 1e-5
     assert measured["progress_particles_devices"] == 4

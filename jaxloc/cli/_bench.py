@@ -125,7 +125,7 @@ def run_bench_filter(args: argparse.Namespace) -> int:
         kld=KLDConfig(min_particles=min(300, args.particles), max_particles=args.particles),
     )
 
-    def run(seed: int) -> None:  # the demo's path: one jitted step per frame
+    def run(seed: int) -> None:  # the demo's path: one scan per round, a progress bar
         result = localize(jax.random.key(seed), scene, sequence, config, progress=True)
         jax.block_until_ready(result.poses)
 

@@ -10,7 +10,10 @@ and :func:`update_step` (with :class:`UpdateConfig`, the grid-free part of :clas
 
 Everything that varies per frame is a traced :class:`Frame`; the map, the particle capacity, the
 ray grid and the score variants fix the compiled shapes, so a new frame, a new map of the same
-capacity or a new value of sigma / lambda / epsilon never recompiles.
+capacity or a new value of sigma / lambda / epsilon never recompiles. :func:`run_pass` can tick a
+progress bar after each frame (a host call inside its scan). The host-side helpers
+(:meth:`Region.of_scene`, :func:`grid_pixels`, :func:`frames_on_grid`) use NumPy on concrete
+inputs (no program compiled) and ``jax.numpy`` on traced ones (inside a caller's ``jit``).
 """
 
 from __future__ import annotations
@@ -24,10 +27,12 @@ import numpy as np
 from jax import Array
 from jax.sharding import Mesh, PartitionSpec
 
+from jaxloc._traced import concrete
 from jaxloc.camera import Camera, RayGrid
 from jaxloc.raycasting.engines import check_engine_name
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc._convert import as_float32, as_int32
+from jaxloc.sg2loc._progress import tick_after
 from jaxloc.sg2loc.particles import (
     PAPER_HEIGHTS,
     ParticleState,
@@ -66,7 +71,7 @@ class Region(eqx.Module):
     @staticmethod
     def of_scene(scene: SceneGraph) -> Region:
         """The map's floor bounds: the x-y extent of its meshes, floor at their lowest point."""
-        bounds = np.asarray(scene.bounds)
+        bounds = np.asarray(scene.bounds) if concrete(scene.bounds) else scene.bounds
         return Region(bounds[0, :2], bounds[1, :2], bounds[0, 2])
 
 
@@ -74,10 +79,8 @@ class Region(eqx.Module):
 #: step's working set near 1 GiB at any stride (benchmarks/results/filter_profile_cpu.md).
 CHUNK_RAYS = 2**20
 
-#: The same on XLA:CPU. Chunks of 2^18 rays keep the rays' intermediate arrays nearer the caches
-#: and waste less on the partly filled last chunk: at 960 x 540, 2500 particles, the paper's
-#: strides took 1.59-1.68 s per frame against 1.79-2.01 s with 2^20, paired; 2^19 and 2^17 were
-#: slower than 2^18 (benchmarks/results/filter_step_cpu.md, session 26).
+#: The same on XLA:CPU: at 960 x 540, 2500 particles, the paper's strides took 1.59-1.68 s per
+#: frame against 1.79-2.01 s with 2^20, paired; 2^19 and 2^17 were slower (filter_step_cpu.md).
 CPU_CHUNK_RAYS = 2**18
 
 
@@ -223,43 +226,44 @@ class StepInfo(NamedTuple):
     verdict: Verdict
 
 
-def grid_pixels(camera: Camera, grid: RayGrid) -> tuple[np.ndarray, np.ndarray]:
-    """The image pixel (row, column) of every ray of ``grid``: two (R,) int arrays (host side), the
-    nearest pixel centre, clipped to the image."""
-    uv = np.asarray(grid.uv)
-    cols = np.clip(np.rint(uv[:, 0]).astype(int), 0, camera.width - 1)
-    rows = np.clip(np.rint(uv[:, 1]).astype(int), 0, camera.height - 1)
+def grid_pixels(camera: Camera, grid: RayGrid) -> tuple[np.ndarray | Array, np.ndarray | Array]:
+    """The image pixel (row, column) of every ray of ``grid``: two (R,) int32 arrays, the nearest
+    pixel centre, clipped to the image. NumPy arrays for a concrete grid (host side), traced ones
+    for a traced grid."""
+    xp = jnp if isinstance(grid.uv, jax.core.Tracer) else np
+    uv = xp.asarray(grid.uv)
+    cols = xp.clip(xp.rint(uv[:, 0]).astype(xp.int32), 0, camera.width - 1)
+    rows = xp.clip(xp.rint(uv[:, 1]).astype(xp.int32), 0, camera.height - 1)
     return rows, cols
 
 
 def frames_on_grid(sequence: Sequence, grid: RayGrid) -> Frame:
-    """All frames of a sequence sampled on a ray grid, stacked with a leading T axis (host side)."""
+    """All frames of a sequence sampled on a ray grid, stacked with a leading T axis (with NumPy
+    for a concrete sequence and grid, ``jax.numpy`` for traced ones)."""
     num_frames = sequence.num_frames
-    camera = sequence.camera
-    rows, cols = grid_pixels(camera, grid)
-    h, w = grid.shape
-    if sequence.depth is not None:
-        depth = sequence.depth[:, rows, cols]
-    else:
-        depth = np.zeros((num_frames, rows.shape[0]), np.float32)
-    if sequence.rgb is not None:
-        rgb = sequence.rgb[:, rows, cols].reshape(num_frames, h, w, 3)
-    else:
-        rgb = np.zeros((num_frames, h, w, 3), np.float32)
     rows_p, cols_p = sequence.patch_shape
     if (rows_p, cols_p) != (grid.rows, grid.cols):
         raise ValueError(
             f"the sequence has a {rows_p}x{cols_p} patch grid but the ray grid uses "
             f"{grid.rows}x{grid.cols} patches"
         )
-    motion = np.concatenate([np.zeros((1, 4), np.float32), sequence.ego_motion], axis=0)
-    return Frame(
-        # device_put: jnp.asarray would compile a conversion program per array
+    rows, cols = grid_pixels(sequence.camera, grid)
+    xp = np if concrete(*jax.tree.leaves((sequence, rows))) else jnp
+    h, w = grid.shape
+    if sequence.depth is not None:
+        depth = xp.asarray(sequence.depth)[:, rows, cols]
+    else:
+        depth = xp.zeros((num_frames, rows.shape[0]), xp.float32)
+    if sequence.rgb is not None:
+        rgb = xp.asarray(sequence.rgb)[:, rows, cols].reshape(num_frames, h, w, 3)
+    else:
+        rgb = xp.zeros((num_frames, h, w, 3), xp.float32)
+    motion = xp.concatenate([xp.zeros((1, 4), xp.float32), xp.asarray(sequence.ego_motion)])
+    embeddings = xp.asarray(sequence.patch_embeddings).reshape(num_frames, rows_p * cols_p, -1)
+    return Frame(  # device_put: jnp.asarray would compile a conversion program per host array
         index=jax.device_put(np.arange(num_frames, dtype=np.int32)),
         motion=jax.device_put(motion),
-        patch_embeddings=jax.device_put(
-            np.asarray(sequence.patch_embeddings).reshape(num_frames, rows_p * cols_p, -1)
-        ),
+        patch_embeddings=jax.device_put(embeddings),
         depth=jax.device_put(depth),
         rgb=jax.device_put(rgb),
         tilt=jax.device_put(sequence.tilt),
@@ -388,9 +392,8 @@ def predict_step(
 
 
 class UpdateConfig(eqx.Module):
-    """The part of :class:`StepConfig` that :func:`update_step` reads: no camera, no ray grid,
-    so one compiled update serves every ray grid (every coarse-to-fine round). Fields as in
-    :class:`StepConfig`."""
+    """The part of :class:`StepConfig` that :func:`update_step` reads (no camera, no ray grid);
+    fields as in :class:`StepConfig`."""
 
     observation: ObservationConfig
     kld: KLDConfig
@@ -453,11 +456,9 @@ def step(
     """One SG2Loc filter step: predict, render, score, weight, estimate, resample, inject.
 
     It is :func:`predict_step`, :func:`~jaxloc.sg2loc.scores.match_patches`,
-    :func:`score_active` and :func:`update_step` in turn (``jaxloc.sg2loc.localize(...,
-    progress=True)`` runs them as separate programs, so that only the scoring compiles per ray
-    grid). The first frame
-    (``frame.index == 0``) is not moved: its particles are the initial set. A non-finite
-    ego-motion counts as zero motion and is flagged in ``info.motion_valid``.
+    :func:`score_active` and :func:`update_step` in turn. The first frame (``frame.index == 0``)
+    is not moved: its particles are the initial set. A non-finite ego-motion counts as zero
+    motion and is flagged in ``info.motion_valid``.
     """
     with jax.named_scope("predict"):
         state, motion_valid = predict_step(
@@ -472,16 +473,28 @@ def step(
 
 
 def run_pass(
-    key: Array, state: ParticleState, frames: Frame, scene: SceneGraph, config: StepConfig
+    key: Array,
+    state: ParticleState,
+    frames: Frame,
+    scene: SceneGraph,
+    config: StepConfig,
+    progress: Array | None = None,
 ) -> tuple[ParticleState, StepInfo]:
     """Filter a whole sequence (``frames`` stacked on a leading T axis) with ``lax.scan``.
 
     Frame ``t`` steps with the key ``jax.random.fold_in(key, frames.index[t])``, as a stream of
     frames does (:mod:`jaxloc.sg2loc.online`). Returns the final state and the per-frame
     :class:`StepInfo` stacked on a leading T axis.
+
+    ``progress``: None, or the int32 id of an open progress bar of ``localize(...,
+    progress=True)``, ticked by a host call after each frame (once per frame under ``jax.vmap``
+    too); it changes the compiled program, not the results.
     """
 
     def body(carry, frame):
-        return step(jax.random.fold_in(key, frame.index), carry, frame, scene, config)
+        carry, info = step(jax.random.fold_in(key, frame.index), carry, frame, scene, config)
+        if progress is not None:
+            tick_after(progress, info.num_particles, config.mesh is not None)
+        return carry, info
 
     return jax.lax.scan(body, state, frames)

@@ -7,11 +7,15 @@ ego-motion, re-initialises the particles in a box around it (half-widths ``box_h
 casts a denser ray grid. The paper's defaults are strides 20, 8, 4 and boxes of 1.6^3 then 0.8^3 m.
 
 A round is one compiled ``lax.scan`` of :func:`~jaxloc.sg2loc.filter.step` over the frames
-(:func:`~jaxloc.sg2loc.filter.run_pass`). With a progress bar, each frame instead runs as three
-compiled programs (prediction, scoring, update; together the step): only the scoring depends on
-the round's ray grid, so the other two compile once for all rounds. Same results, bit for bit;
-the scan runs faster (one execution per round, not three per frame), the frame-by-frame path
-compiles less (the first run of three rounds: ~4 s less on 2 CPU cores).
+(:func:`~jaxloc.sg2loc.filter.run_pass`); later rounds of one stride share their program. With
+``progress=True`` a host call inside that scan ticks a progress bar after every frame.
+
+:func:`localize` composes with the caller's transformations: it runs inside ``jax.jit`` (key,
+scene, sequence and configuration may all be traced) and ``jax.vmap`` (over keys, over the array
+leaves of configurations stacked with ``jax.tree.map(lambda *c: jnp.stack(c), *configs)``, over
+sequences of one shape stacked the same way). Every continuous setting of :class:`SG2LocConfig`
+is a traced array leaf, so a sweep over its values compiles once; only sizes, strides, schedules,
+engines and variants are static.
 
 :func:`warm_up` compiles the programs of a later :func:`localize` call in a background thread,
 from arguments that need only have the right shapes, so that compilation overlaps the caller's
@@ -31,50 +35,53 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 from jax.sharding import Mesh
-from tqdm.auto import tqdm
 
+from jaxloc._traced import concrete
 from jaxloc.camera import stride_grid
 from jaxloc.geometry import uncompose_yaw
 from jaxloc.raycasting.engines import check_engine_name
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc._convert import as_float32
+from jaxloc.sg2loc._convert import as_float32, as_int32, finite_nonnegative, shown
+from jaxloc.sg2loc._progress import FrameBar
 from jaxloc.sg2loc.filter import (
     Region,
     StepConfig,
     StepInfo,
     check_particle_chunk,
     frames_on_grid,
-    predict_step,
     run_pass,
-    score_active,
-    update_step,
 )
 from jaxloc.sg2loc.particles import DEFAULT_BOX_YAW_HALF_RANGE, PAPER_HEIGHTS, init_box, init_region
 from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.scores import ObservationConfig, match_patches
+from jaxloc.sg2loc.scores import ObservationConfig
 from jaxloc.sg2loc.sequence import Sequence
 from jaxloc.sg2loc.verdict import VerdictConfig, default_verdict
 from jaxloc.sharding import check_divisible, pin_split
 
 
 class SG2LocConfig(eqx.Module):
-    """Settings of :func:`localize`. Sizes and schedules are static; weights are traced.
+    """Settings of :func:`localize`. Sizes, schedules and switches are static; every continuous
+    setting is a traced array leaf (a new value never recompiles; stacked configurations vmap).
 
     Attributes:
         capacity: particle buffer size (static); KLD-sampling chooses how many are active.
         strides: pixel stride of each round's ray grid (static; paper 20, 8, 4).
-        box_half_widths: half-width (metres) of the re-initialisation box of rounds 1, 2, ...
-            (static; paper 0.8 and 0.4, i.e. 1.6^3 and 0.8^3 m boxes).
-        yaw_half_range: yaw half-range (radians) of the re-initialisation boxes.
+        box_half_widths: (B,) float32 half-widths (metres) of the re-initialisation boxes of
+            rounds 1, 2, ... (round r uses ``box_half_widths[r - 1]``; B >= R - 1 for R rounds;
+            paper 0.8 and 0.4, i.e. 1.6^3 and 0.8^3 m boxes).
+        yaw_half_range: float32 yaw half-range (radians) of the re-initialisation boxes.
         observation: score variants and likelihood parameters.
         kld: KLD-sampling parameters.
-        sigma_trans, sigma_rot: motion noise (metres, radians; paper 0.05 and 0.05).
-        inject_count, inject_every: random-particle injection (reference: 2000 every 5th frame;
-            default off).
+        sigma_trans, sigma_rot: float32 motion noise (metres, radians; paper 0.05 and 0.05).
+        inject_count: int32 random particles injected on injection frames (reference: 2000;
+            default 0, off).
+        inject_every: inject on frames whose index is a positive multiple of this (static;
+            reference 5).
         region: initialisation region (default: the map's floor bounds).
-        heights: camera heights above the region's floor (metres) of round 0's particles and of
-            injected ones (static; default the paper's 1.5, 1.6, 1.7, 1.8 m). Set them near the
-            query camera's real height (e.g. 1.2-1.5 m for a hand-held ScanNet camera).
+        heights: (H,) float32 camera heights above the region's floor (metres) of round 0's
+            particles and of injected ones (H static; default the paper's 1.5, 1.6, 1.7, 1.8 m).
+            Set them near the query camera's real height (e.g. 1.2-1.5 m for a hand-held ScanNet
+            camera).
         engine: nearest-hit engine of the rendering (static; "auto", "jax", "embree" or "warp",
             see :func:`jaxloc.raycast`).
         particle_chunk: particles rendered together (static; ``StepConfig.particle_chunk``:
@@ -82,22 +89,23 @@ class SG2LocConfig(eqx.Module):
         verdict: thresholds of the per-frame verdict
             (:class:`~jaxloc.sg2loc.verdict.VerdictConfig`; None: the preset for whether the
             sequence's depth is used, :func:`~jaxloc.sg2loc.verdict.default_verdict`).
+
+    Concrete values are validated on construction; traced ones (a configuration built inside a
+    caller's ``jax.jit`` or ``jax.vmap``) only by shape.
     """
 
     capacity: int = eqx.field(static=True, default=2500)
     strides: tuple[int, ...] = eqx.field(static=True, default=(20, 8, 4))
-    box_half_widths: tuple[float, ...] = eqx.field(static=True, default=(0.8, 0.4))
+    box_half_widths: Array = eqx.field(default=(0.8, 0.4), converter=as_float32)
     yaw_half_range: Array = eqx.field(default=DEFAULT_BOX_YAW_HALF_RANGE, converter=as_float32)
     observation: ObservationConfig = ObservationConfig()
     kld: KLDConfig = KLDConfig()
     sigma_trans: Array = eqx.field(default=0.05, converter=as_float32)
     sigma_rot: Array = eqx.field(default=0.05, converter=as_float32)
-    inject_count: int = 0
+    inject_count: Array = eqx.field(default=0, converter=as_int32)
     inject_every: int = eqx.field(static=True, default=5)
     region: Region | None = None
-    heights: tuple[float, ...] = eqx.field(
-        static=True, default=PAPER_HEIGHTS, converter=lambda h: tuple(float(x) for x in h)
-    )
+    heights: Array = eqx.field(default=PAPER_HEIGHTS, converter=as_float32)
     engine: str = eqx.field(static=True, default="auto")
     particle_chunk: int | None = eqx.field(static=True, default=None)
     verdict: VerdictConfig | None = None
@@ -109,17 +117,21 @@ class SG2LocConfig(eqx.Module):
             raise ValueError(f"capacity must be a positive int, got {self.capacity!r}")
         if len(self.strides) < 1 or any(int(s) < 1 for s in self.strides):
             raise ValueError(f"strides must be positive ints, got {self.strides}")
-        if len(self.box_half_widths) < len(self.strides) - 1:
+        boxes, heights = self.box_half_widths, self.heights
+        if boxes.ndim != 1 or boxes.shape[0] < len(self.strides) - 1:
             raise ValueError(
                 f"{len(self.strides)} rounds need {len(self.strides) - 1} box_half_widths, "
-                f"got {self.box_half_widths}"
+                f"got {shown(boxes)}"
             )
-        if any(not h > 0 for h in self.box_half_widths):
-            raise ValueError(f"box_half_widths must be positive, got {self.box_half_widths}")
-        if len(self.heights) < 1 or not all(np.isfinite(h) and h >= 0 for h in self.heights):
+        if concrete(boxes) and not np.all(np.asarray(boxes) > 0):
+            raise ValueError(f"box_half_widths must be positive, got {shown(boxes)}")
+        if heights.ndim != 1 or heights.shape[0] < 1 or not finite_nonnegative(heights):
             raise ValueError(
-                f"heights must be a non-empty tuple of finite heights >= 0 m, got {self.heights}"
+                f"heights must be a non-empty tuple of finite heights >= 0 m, got {shown(heights)}"
             )
+        count = self.inject_count
+        if count.ndim != 0 or (concrete(count) and np.asarray(count) < 0):
+            raise ValueError(f"inject_count must be an int >= 0, got {shown(count)}")
 
 
 class SG2LocResult(NamedTuple):
@@ -162,98 +174,28 @@ def carry_back(pose: Array, ego_motion: Array) -> Array:
     return first
 
 
-def _initial_state(key, init_args, region: Region, heights, capacity: int, mesh: Mesh | None):
-    if init_args is None:
+def _initial_state(key, box, region: Region, heights, capacity: int, mesh: Mesh | None):
+    """Round 0's particles over ``region`` at ``heights`` (``box`` None), or a later round's in
+    the box ``(centre (4,), half_widths (B,), index (int32), yaw_half_range)``: half-width
+    ``half_widths[index]`` around ``centre`` (the index traced, so later rounds of one stride
+    share their program)."""
+    if box is None:
         state = init_region(key, capacity, region.lo, region.hi, region.floor_z, heights=heights)
     else:
-        centre, half_width, yaw_half_range = init_args
-        state = init_box(key, capacity, centre, jnp.full((3,), half_width), yaw_half_range)
+        centre, half_widths, index, yaw_half_range = box
+        half_width = jnp.full((3,), half_widths[index])
+        state = init_box(key, capacity, centre, half_width, yaw_half_range)
     return state if mesh is None else pin_split(state, mesh)
 
 
-#: ``compiler_options`` of the initial-state program: LLVM's -O1 compiles it ~30 % faster
-#: (0.35 -> 0.24 s on 2 CPU cores) and it runs once per round, in milliseconds. Its output is
-#: the same bit for bit (the tests compare with the scan, whose rounds start inline at -O3); the
-#: prediction's and the update's would not be, so they keep XLA's default.
-LIGHT_COMPILATION = {"xla_backend_optimization_level": 1}
-
-_jit_initial_state = eqx.filter_jit(_initial_state, compiler_options=LIGHT_COMPILATION)
-
-#: How many times each per-frame program of ``localize(..., progress=True)`` was traced (tests
-#: count them).
-TRACE_COUNTS = {"predict": 0, "score": 0, "update": 0}
-
-
-# One frame is three programs: only the scoring depends on the round's ray grid, so the
-# prediction and the update compile once for every round (together they took longer to compile
-# than the scoring: ~0.4 s and ~1.4 s against ~1.1 s for the demo). Frame ``t`` is picked
-# inside each program (``t`` traced), from frames stacked on T.
 @eqx.filter_jit
-def _predict_frame(key_run, state, index, motion, patch_embeddings, t, sigma, scene):
-    TRACE_COUNTS["predict"] += 1
-    key = jax.random.fold_in(key_run, index[t])
-    state, motion_valid = predict_step(key, state, index[t], motion[t], *sigma)
-    match = match_patches(patch_embeddings[t], scene.embeddings, scene.object_valid)
-    return key, state, motion_valid, match
-
-
-@eqx.filter_jit
-def _score_frame(state, frames, t, scene, step_config, match):
-    TRACE_COUNTS["score"] += 1
-    frame = jax.tree.map(lambda a: a[t], frames)
-    return score_active(state, frame, scene, step_config, match)
-
-
-@eqx.filter_jit
-def _update_frame(key, state, scores, match, index, t, motion_valid, config, mesh: Mesh | None):
-    TRACE_COUNTS["update"] += 1
-    state, info = update_step(key, state, scores, match, index[t], motion_valid, config)
-    return (state if mesh is None else pin_split(state, mesh)), info
-
-
-@eqx.filter_jit
-def _round(key, init_args, frames, scene, step_config, capacity: int, mesh: Mesh | None):
+def _round(key, box, frames, scene, step_config, capacity: int, mesh: Mesh | None, progress):
     """One pass of the filter over ``frames`` (stacked on T), one program: ``(final state,
-    per-frame infos stacked on T)``."""
+    per-frame infos stacked on T)``. ``progress``: a progress bar's id, or None (see
+    :func:`~jaxloc.sg2loc.filter.run_pass`)."""
     key_init, key_run = jax.random.split(key)
-    state = _initial_state(
-        key_init, init_args, step_config.region, step_config.heights, capacity, mesh
-    )
-    return run_pass(key_run, state, frames, scene, step_config)
-
-
-def _round_with_progress(key, init_args, frames, scene, step_config, capacity, mesh, bar, run):
-    """:func:`_round` as three jitted programs per frame (:func:`_predict_frame`,
-    :func:`_score_frame`, :func:`_update_frame`; the tests check the results bit for bit),
-    updating ``bar`` (or None) after each frame. ``run(program, *args)`` runs each program
-    (:func:`_call`), or lowers it (a :class:`_Lowering`: one frame, as every frame runs the
-    same programs)."""
-    key_init, key_run = jax.random.split(key)
-    state = run(
-        _jit_initial_state,
-        *(key_init, init_args, step_config.region, step_config.heights, capacity, mesh),
-    )
-    sigma = (step_config.sigma_trans, step_config.sigma_rot)
-    update_config = step_config.update
-    num_frames = frames.index.shape[0]
-    infos = []
-    for t in range(1 if isinstance(run, _Lowering) else num_frames):
-        t = np.int32(t)
-        frame_key, state, motion_valid, match = run(
-            _predict_frame,
-            *(key_run, state, frames.index, frames.motion, frames.patch_embeddings, t, sigma),
-            scene,
-        )
-        scores = run(_score_frame, state, frames, t, scene, step_config, match)
-        state, info = run(
-            _update_frame,
-            *(frame_key, state, scores, match, frames.index, t, motion_valid, update_config),
-            mesh,
-        )
-        infos.append(info)
-        if bar is not None:
-            bar.update(1)
-    return run(_stacked, infos * (num_frames // len(infos)))
+    state = _initial_state(key_init, box, step_config.region, step_config.heights, capacity, mesh)
+    return run_pass(key_run, state, frames, scene, step_config, progress)
 
 
 def _call(program, *args):
@@ -313,8 +255,8 @@ def _zeros(shape: jax.ShapeDtypeStruct) -> Array:
 
 @jax.jit
 def _stacked(items: list) -> Any:
-    """A list of pytrees of one structure (per-frame step infos, per-round results) as one
-    pytree, every leaf stacked along a new leading axis."""
+    """A list of pytrees of one structure (per-round results) as one pytree, every leaf stacked
+    along a new leading axis."""
     return jax.tree.map(lambda *xs: jnp.stack(xs), *items)
 
 
@@ -332,13 +274,19 @@ def localize(
     Depth and colour scores are used when the sequence carries depth / RGB and the configuration
     enables them; a sequence without depth (or RGB) runs without that score.
 
+    Runs inside a caller's ``jax.jit`` and ``jax.vmap`` (see the module docstring); the result
+    is the same as an eager call's up to float32 rounding.
+
     Args:
         key: PRNG key; the same key and inputs give the same result.
         scene: the map.
         sequence: the query (its patch grid fixes the semantic patches).
         config: :class:`SG2LocConfig` (paper defaults).
-        progress: show a progress bar over rounds x frames (runs each frame as three programs
-            that the rounds share, instead of one ``lax.scan`` per round; same result).
+        progress: show a progress bar over rounds x frames, ticked by a host call from inside
+            each round's compiled scan (the same result as without). Not shown when ``key`` is
+            traced (inside a caller's ``jax.jit``, or a ``jax.vmap`` over keys). On a GPU or with
+            ``mesh`` the host call is a Python callback, and JAX keeps such programs out of its
+            persistent compilation cache.
         mesh: a 1-D device mesh (:func:`jaxloc.sharding.device_mesh`) to split the particle
             buffer over; ``config.capacity`` must be a multiple of its device count. Same keys,
             same result as one device up to the float32 reduction order (see
@@ -351,7 +299,12 @@ def localize(
     """
     config = SG2LocConfig() if config is None else config
     step_configs = _checked(scene, sequence, config, mesh)
-    return _run_rounds(key, scene, sequence, config, step_configs, progress, mesh, _call)
+    keys = jax.random.split(key, len(config.strides))
+    if not progress or isinstance(keys, jax.core.Tracer):
+        return _run_rounds(keys, scene, sequence, config, step_configs, None, mesh, _call)
+    with FrameBar(config.strides, sequence.num_frames) as bar:
+        result = _run_rounds(keys, scene, sequence, config, step_configs, bar.id, mesh, _call)
+        return jax.block_until_ready(result)  # every frame's tick reaches the open bar
 
 
 def warm_up(
@@ -373,18 +326,18 @@ def warm_up(
     warm-up is still compiling: it can start at once, and each of its programs waits for the
     warm-up's compilation of it, queued or in flight (the first programs compile first).
 
-    The programs are traced and lowered here, in the calling thread (~1.5 s for the paper's three
-    rounds on 2 CPU cores: that work holds the GIL, so overlapping it with the caller's own
-    Python would gain nothing), and compiled in the background (XLA releases the GIL; ~5 s of
-    compilation for the same rounds). They also go to the persistent compilation cache, where
-    it is enabled.
+    The programs are traced and lowered here, in the calling thread (that work holds the GIL, so
+    overlapping it with the caller's own Python would gain nothing), and compiled in the
+    background (XLA releases the GIL). They also go to the persistent compilation cache, where it
+    is enabled (with a progress bar, on one CPU device only: see ``progress``).
 
     Args:
         key: a PRNG key of the kind :func:`localize` will get (its value is not used).
         scene: as for :func:`localize`.
         sequence: as for :func:`localize` (or :meth:`Sequence.zeros` of its sizes).
         config: as for :func:`localize`.
-        progress: as for :func:`localize` (the frame-by-frame programs, or the scans).
+        progress: as for :func:`localize` (the rounds' programs with the progress bar's host
+            call, or without).
         mesh: as for :func:`localize`.
 
     Raises:
@@ -395,8 +348,10 @@ def warm_up(
     """
     config = SG2LocConfig() if config is None else config
     step_configs = _checked(scene, sequence, config, mesh)
+    keys = jax.random.split(key, len(config.strides))
+    bar_id = np.int32(0) if progress else None  # a placeholder: only its type matters
     lowering = _Lowering(_warm_up_thread)
-    _run_rounds(key, scene, sequence, config, step_configs, progress, mesh, lowering)
+    _run_rounds(keys, scene, sequence, config, step_configs, bar_id, mesh, lowering)
     # the thread runs its tasks in turn: this one ends after every compilation
     return _warm_up_thread.submit(_raise_first_failure, lowering.compiled)
 
@@ -452,37 +407,28 @@ def _checked(scene, sequence, config: SG2LocConfig, mesh) -> tuple[StepConfig, .
     )
 
 
-def _run_rounds(key, scene, sequence, config, step_configs, progress, mesh, run) -> SG2LocResult:
-    """The rounds of :func:`localize` (``step_configs`` from :func:`_checked`), each jitted
-    program run by ``run`` (:func:`_call`; a :class:`_Lowering` lowers them instead, without a
-    progress bar)."""
-    keys = jax.random.split(key, len(config.strides))
+def _run_rounds(keys, scene, sequence, config, step_configs, bar_id, mesh, run) -> SG2LocResult:
+    """The rounds of :func:`localize` (one key of ``keys`` each; ``step_configs`` from
+    :func:`_checked`; ``bar_id`` a progress bar's id or None), each jitted program run by ``run``
+    (:func:`_call`; a :class:`_Lowering` lowers them instead)."""
     centre = np.full((4,), np.nan, np.float32)
     starts, round_mle, counts, particles, weights = [], [], [], [], []
     info = None
-    total = len(config.strides) * sequence.num_frames
-    show = progress and run is _call
-    bar = tqdm(total=total, unit="frame", disable=False) if show else None
-    for r, (stride, step_config) in enumerate(zip(config.strides, step_configs, strict=True)):
-        init_args = (
-            None if r == 0 else (centre, config.box_half_widths[r - 1], config.yaw_half_range)
+    for r, step_config in enumerate(step_configs):
+        box = (
+            None
+            if r == 0
+            else (centre, config.box_half_widths, np.int32(r - 1), config.yaw_half_range)
         )
         frames = frames_on_grid(sequence, step_config.grid)
-        round_args = (keys[r], init_args, frames, scene, step_config, config.capacity, mesh)
-        if not progress:
-            _, info = run(_round, *round_args)
-        else:
-            if bar is not None:
-                bar.set_description(f"round {r + 1}/{len(config.strides)} (stride {stride})")
-            info = _round_with_progress(*round_args, bar, run)
+        round_args = (keys[r], box, frames, scene, step_config, config.capacity, mesh, bar_id)
+        _, info = run(_round, *round_args)
         starts.append(centre)
         round_mle.append(info.mle)
         counts.append(info.num_particles)
         particles.append(info.particles)
         weights.append(info.particle_weights)
         centre = run(carry_back, info.mle[-1], sequence.ego_motion)
-    if bar is not None:
-        bar.close()
     round_mle, starts, counts, particles, weights = run(
         _stacked, list(zip(round_mle, starts, counts, particles, weights, strict=True))
     )

@@ -42,7 +42,7 @@ from jax import Array
 from jaxloc.camera import Camera, stride_grid
 from jaxloc.raycasting.engines import check_engine_name
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc._convert import as_float32, as_int32
+from jaxloc.sg2loc._convert import as_float32, as_int32, finite_nonnegative, shown
 from jaxloc.sg2loc.filter import Frame, Region, StepConfig, check_particle_chunk, grid_pixels, step
 from jaxloc.sg2loc.particles import PAPER_HEIGHTS, ParticleState, init_region, inject_uniform
 from jaxloc.sg2loc.resampling import KLDConfig
@@ -68,7 +68,8 @@ class OnlineConfig(eqx.Module):
         sigma_trans, sigma_rot: motion noise (metres, radians).
         region: where the particles start and where relocalization puts them (default: the
             map's floor bounds).
-        heights: camera heights above the floor of those particles (metres).
+        heights: (H,) float32 camera heights above the floor of those particles (metres; H
+            static).
         relocalize_after: frames without the verdict before relocalizing (traced int; 0: never).
         relocalize_count: particles replaced by random ones then (traced int, clamped to the
             capacity).
@@ -84,9 +85,7 @@ class OnlineConfig(eqx.Module):
     sigma_trans: Array = eqx.field(default=0.05, converter=as_float32)
     sigma_rot: Array = eqx.field(default=0.05, converter=as_float32)
     region: Region | None = None
-    heights: tuple[float, ...] = eqx.field(
-        static=True, default=PAPER_HEIGHTS, converter=lambda h: tuple(float(x) for x in h)
-    )
+    heights: Array = eqx.field(default=PAPER_HEIGHTS, converter=as_float32)
     relocalize_after: Array = eqx.field(default=5, converter=as_int32)
     relocalize_count: Array = eqx.field(default=2000, converter=as_int32)
     engine: str = eqx.field(static=True, default="auto")
@@ -102,8 +101,9 @@ class OnlineConfig(eqx.Module):
         rows_cols = tuple(self.patch_shape)
         if len(rows_cols) != 2 or any(not isinstance(n, int) or n < 1 for n in rows_cols):
             raise ValueError(f"patch_shape must be two positive ints, got {self.patch_shape!r}")
-        if len(self.heights) < 1 or not all(np.isfinite(h) and h >= 0 for h in self.heights):
-            raise ValueError(f"heights must be finite heights >= 0 m, got {self.heights}")
+        heights = self.heights
+        if heights.ndim != 1 or heights.shape[0] < 1 or not finite_nonnegative(heights):
+            raise ValueError(f"heights must be finite heights >= 0 m, got {shown(heights)}")
         for name in ("relocalize_after", "relocalize_count"):
             value = getattr(self, name)
             if not isinstance(value, jax.core.Tracer) and int(value) < 0:
