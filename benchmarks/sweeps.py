@@ -135,25 +135,15 @@ def _m2loc_worker(mode: str, count: int, queries: int) -> dict:
                 over_scans = jax.vmap(query, in_axes=(None, 0, None))
                 return jax.vmap(over_scans, in_axes=(None, None, 0))(m, s, c)
 
-        run = jax.jit(sweep)
-        t = time.perf_counter()
-        out = jax.block_until_ready(run(triplet_map, scans, stacked))
-        first = time.perf_counter() - t
-        t = time.perf_counter()
-        out = jax.block_until_ready(run(triplet_map, scans, stacked))
-        again = time.perf_counter() - t
+        out, times = _first_and_again(jax.jit(sweep), (triplet_map, scans, stacked), len(configs))
         valid = np.asarray(out.valid).tolist()
-        times = [first] + [again / len(configs)] * (len(configs) - 1)
-    return {
-        "source": source,
-        "configs": len(configs),
-        "queries": len(found),
-        "wall_s": time.perf_counter() - start,
-        "first_s": times[0],
-        "per_config_s": float(np.median(times[1:])) if len(times) > 1 else float("nan"),
-        "valid": valid,
-        "maps_before": maps_before,
-    }
+    return dict(
+        _timing(times, start, maps_before),
+        source=source,
+        configs=len(configs),
+        queries=len(found),
+        valid=valid,
+    )
 
 
 # --------------------------------------------------------------------------------------- SG2Loc
@@ -207,20 +197,31 @@ def _sg2loc_worker(mode: str, count: int) -> dict:
     else:
         stacked = jax.tree.map(lambda *x: jnp.stack(x), *configs)
         run = jax.jit(jax.vmap(lambda c: localize(key, scene, sequence, c).poses))
-        t = time.perf_counter()
-        out = jax.block_until_ready(run(stacked))
-        first = time.perf_counter() - t
-        t = time.perf_counter()
-        out = jax.block_until_ready(run(stacked))
-        again = time.perf_counter() - t
+        out, times = _first_and_again(run, (stacked,), len(configs))
         poses = np.asarray(out).tolist()
-        times = [first] + [again / len(configs)] * (len(configs) - 1)
+    return dict(_timing(times, start, maps_before), configs=len(configs), poses=poses)
+
+
+def _first_and_again(run, args: tuple, count: int):
+    """A batched sweep run twice: its output and per-configuration times (the first call's,
+    compilation included, then the second call's divided over the ``count`` configurations)."""
+    import jax
+
+    t = time.perf_counter()
+    jax.block_until_ready(run(*args))
+    first = time.perf_counter() - t
+    t = time.perf_counter()
+    out = jax.block_until_ready(run(*args))
+    return out, [first] + [(time.perf_counter() - t) / count] * (count - 1)
+
+
+def _timing(times: list[float], start: float, maps_before: int) -> dict:
+    import numpy as np
+
     return {
-        "configs": len(configs),
         "wall_s": time.perf_counter() - start,
         "first_s": times[0],
         "per_config_s": float(np.median(times[1:])) if len(times) > 1 else float("nan"),
-        "poses": poses,
         "maps_before": maps_before,
     }
 
@@ -310,35 +311,25 @@ def main() -> None:
         _worker(args)
         return
     print(f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}, load {os.getloadavg()}")
-    header = (
-        "| run | sweep s | first config s | s / config after | compilations | peak RSS GiB "
-        "| mappings |\n|---|---|---|---|---|---|---|"
-    )
     rows = {}
-    if "m2loc" in args.method:
-        print(f"\nM2Loc: {args.m2loc_configs} configurations x {args.m2loc_queries} queries\n")
-        print(header)
-        runs = [("rebuild", ROOT), ("config", ROOT), ("lax.map", ROOT), ("vmap", ROOT)]
-        if args.baseline:
-            runs.insert(0, ("rebuild", args.baseline))
-        for mode, tree in runs:
-            if mode not in args.modes:
-                continue
-            label = f"{mode} ({'baseline' if tree != ROOT else 'this checkout'})"
-            rows[("m2loc", label)] = row = _run("m2loc", mode, args, tree)
-            _print(label, row)
-    if "sg2loc" in args.method:
-        print(f"\nSG2Loc: {args.sg2loc_configs} configurations\n")
-        print(header)
-        runs = [("loop", ROOT), ("jit", ROOT), ("vmap", ROOT)]
-        if args.baseline:
-            runs.insert(0, ("loop", args.baseline))
-        for mode, tree in runs:
-            if mode not in args.modes:
-                continue
-            label = f"{mode} ({'baseline' if tree != ROOT else 'this checkout'})"
-            rows[("sg2loc", label)] = row = _run("sg2loc", mode, args, tree)
-            _print(label, row)
+    tables = {
+        "m2loc": (f"M2Loc: {args.m2loc_configs} configurations x {args.m2loc_queries} queries",
+                  ["rebuild", "config", "lax.map", "vmap"]),
+        "sg2loc": (f"SG2Loc: {args.sg2loc_configs} configurations", ["loop", "jit", "vmap"]),
+    }  # fmt: skip
+    for method in args.method:
+        title, modes = tables[method]
+        print(f"\n{title}\n")
+        print(
+            "| run | sweep s | first config s | s / config after | compilations | peak RSS GiB "
+            "| mappings |\n|---|---|---|---|---|---|---|"
+        )
+        runs = [(modes[0], args.baseline)] if args.baseline else []
+        for mode, tree in runs + [(mode, ROOT) for mode in modes]:
+            if mode in args.modes:
+                label = f"{mode} ({'baseline' if tree != ROOT else 'this checkout'})"
+                rows[(method, label)] = row = _run(method, mode, args, tree)
+                _print(label, row)
     _agreement(rows)
     print(f"\nload after: {os.getloadavg()}")
 

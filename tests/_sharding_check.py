@@ -184,7 +184,16 @@ def query_checks(mesh) -> dict:
     batched = localize_scans(triplet_map, scans, mesh)
     alone = [localize_scan(triplet_map, None, p, lab) for p, lab in scans]
     pairs = list(zip(alone, batched, strict=True))
+    # another configuration's query settings on the same map: the same programs
+    strict = dataclasses.replace(config, min_inlier_fraction=1.0, consistency_threshold=0.3)
+    batched_strict = localize_scans(triplet_map, scans, mesh, config=strict)
+    alone_strict = [localize_scan(triplet_map, None, p, lab, config=strict) for p, lab in scans]
     return {
+        "queries_config_equal": all(
+            a.valid == b.valid and max_abs(a.pose, b.pose) <= 1e-3
+            for a, b in zip(alone_strict, batched_strict, strict=True)
+        ),
+        "queries_config_changed": [a.valid for a in alone] != [a.valid for a in alone_strict],
         "queries_valid_equal": [a.valid for a in alone] == [b.valid for b in batched],
         "queries_inliers_equal": all(np.array_equal(a.inliers, b.inliers) for a, b in pairs),
         "queries_pose_diff": max(max_abs(a.pose, b.pose) for a, b in pairs),

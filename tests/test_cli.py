@@ -327,7 +327,7 @@ def test_demo_tiny(tmp_path, capsys):
         code, out, err = run(["demo", *TINY_SG2LOC, "--strides", "8,8", "--out", figure], capsys)
     assert code == 0, err
     rounds = [c for c in compiled if c.endswith(": jit(_round)")]
-    assert rounds == ["jaxloc-warm-up_0: jit(_round)"] * 2
+    assert len(rounds) == 2 and all(c.startswith("jaxloc-warm-up_") for c in rounds)
     assert re.search(r"frame 2: (not )?localized, position error \d+\.\d+ m", out)
     assert "round 2/2 (stride 8)" in err  # the progress bar, ticked from inside the scans
     assert figure.read_bytes().startswith(b"\x89PNG")

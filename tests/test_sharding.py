@@ -110,6 +110,8 @@ def test_sharded_queries_equal_localize_scan(measured):
     assert measured["queries_valid_equal"] and measured["queries_inliers_equal"]
     assert measured["queries_pose_diff"] <= 1e-3  # metres / rotation entries, float32 solver
     assert measured["queries_num_valid"] >= 1
+    # localize_scans(config=) runs the map with that config's query settings, as localize_scan
+    assert measured["queries_config_equal"] and measured["queries_config_changed"]
 
 
 def test_same_key_is_bit_identical_in_another_process(measured):

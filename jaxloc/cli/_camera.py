@@ -207,9 +207,11 @@ def _localize(key, scene, seq, config, args):
     stream (:func:`~jaxloc.sg2loc.online.filter_sequence`) of the sequence."""
     from tqdm.auto import tqdm
 
-    from jaxloc.sg2loc import localize, online
+    from jaxloc.sg2loc import localize, online, warm_up
 
     if not args.online:
+        # the rounds' programs compile side by side (warm_up's threads); localize waits for them
+        warm_up(key, scene, seq, config, progress=not args.no_progress)
         return localize(key, scene, seq, config, progress=not args.no_progress)
     with tqdm(total=seq.num_frames, unit="frame", disable=args.no_progress) as bar:
         return online.filter_sequence(key, scene, seq, config, progress=lambda t: bar.update(1))

@@ -224,8 +224,8 @@ def _program_key(program, args: tuple) -> tuple:
 
 
 class _Lowering:
-    """Runs no program: lowers each jitted ``program`` for ``args``, has ``compiler`` (a
-    one-thread executor) compile it in the background while the next ones are lowered (in
+    """Runs no program: lowers each jitted ``program`` for ``args``, has ``compiler`` (an
+    executor) compile it in the background while the next ones are lowered (in
     :data:`_QUEUED` until compiled, for :func:`_call` to wait for), and returns zeros shaped like
     its output, for :func:`warm_up`. ``compiled``: the compilations' futures, in call order."""
 
@@ -350,14 +350,17 @@ def warm_up(
     step_configs = _checked(scene, sequence, config, mesh)
     keys = jax.random.split(key, len(config.strides))
     bar_id = np.int32(0) if progress else None  # a placeholder: only its type matters
-    lowering = _Lowering(_warm_up_thread)
+    lowering = _Lowering(_compilers)
     _run_rounds(keys, scene, sequence, config, step_configs, bar_id, mesh, lowering)
-    # the thread runs its tasks in turn: this one ends after every compilation
-    return _warm_up_thread.submit(_raise_first_failure, lowering.compiled)
+    # queued after every compilation: it waits only for those still running
+    return _compilers.submit(_raise_first_failure, lowering.compiled)
 
 
-#: The thread that compiles the warm-ups' programs, one after the other (started on first use).
-_warm_up_thread = ThreadPoolExecutor(1, thread_name_prefix="jaxloc-warm-up")
+#: The threads that compile the warm-ups' programs (started on first use). Two: the rounds'
+#: scans compile side by side, in less time than one after the other although one compilation
+#: keeps more than one core busy (localize-camera's two rounds, 160x120, 300 particles, on 2
+#: cores: 6.8-7.6 s in turn, 5.7-6.1 s side by side).
+_compilers = ThreadPoolExecutor(2, thread_name_prefix="jaxloc-warm-up")
 
 
 def _compile(lowered) -> None:
