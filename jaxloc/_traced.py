@@ -13,20 +13,25 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def _leaf(value, dtype):
+def as_leaf(value, dtype):
+    """``value`` as a strongly typed array of ``dtype``: numpy on the host (no device dispatch),
+    JAX values and tracers through ``jnp.asarray`` (returned as they are when they already are
+    one), so a jitted function sees one signature whatever form the caller used."""
     if isinstance(value, jax.Array):  # tracers too
+        if value.dtype == dtype and not getattr(value, "weak_type", False):
+            return value
         return jnp.asarray(value, dtype)
     return np.asarray(value, dtype)
 
 
 def float32_leaf(value):
     """``value`` as a float32 array leaf (numpy on the host, JAX for JAX values and tracers)."""
-    return _leaf(value, np.float32)
+    return as_leaf(value, np.float32)
 
 
 def int32_leaf(value):
     """``value`` as an int32 array leaf (numpy on the host, JAX for JAX values and tracers)."""
-    return _leaf(value, np.int32)
+    return as_leaf(value, np.int32)
 
 
 def optional_float32_leaf(value):
