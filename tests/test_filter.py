@@ -17,12 +17,12 @@ from __future__ import annotations
 import dataclasses
 import re
 import threading
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from _compilations import COMPILED
 
 from jaxloc import Sequence
 from jaxloc.camera import Camera, stride_grid
@@ -416,20 +416,6 @@ def test_step_with_all_invalid_depth(after_first, frames, scene, step_config):
 LOCATED_WARM_UP_ROUNDS: list[str] = []
 #: Programs compiled (or loaded from the persistent cache) by the fixture's ``localize`` call.
 LOCATED_COMPILES: list[str] = []
-#: How long the located fixture keeps the warm-up thread busy before its compilations (past the
-#: lowering), and how many of them were still queued when its localize started.
-WARM_UP_THREAD_BUSY_S = 2.0
-LOCATED_QUEUED: list[int] = []
-#: Every XLA compilation of this process (an in-memory cache hit is none).
-COMPILED: list[str] = []
-
-
-def _count_compilation(event: str, _: float, **kw) -> None:
-    if event.endswith("backend_compile_duration"):
-        COMPILED.append(f"{threading.current_thread().name}: {kw.get('fun_name', '?')}")
-
-
-jax.monitoring.register_event_duration_secs_listener(_count_compilation)
 
 
 def shapes_only(sequence: Sequence) -> Sequence:
@@ -450,23 +436,18 @@ def located(episode, scene) -> SG2LocResult:
     """With a progress bar (a host call in each round's scan), compiled beforehand by
     ``warm_up`` from a placeholder sequence of zeros."""
     key = jax.random.key(LOCALIZE_KEY)
-    # the warm-up threads kept busy past the lowering: localize starts with the compilations queued
-    for _ in range(localization._compilers._max_workers):
-        localization._compilers.submit(time.sleep, WARM_UP_THREAD_BUSY_S)
     before_warm_up = len(COMPILED)
     warming = localization.warm_up(
         key, scene, shapes_only(episode.sequence), LOCALIZE_CONFIG, progress=True
     )
-    LOCATED_QUEUED.append(sum(not (f.running() or f.done()) for f in localization._QUEUED.values()))
     compiled = len(COMPILED)
-    # at once: each program waits for its compilation, queued or in flight
+    # at once: each program waits for the warm-up's compilation of it
     result = localize(key, scene, episode.sequence, LOCALIZE_CONFIG, progress=True)
     assert warming.result() is None
     here = threading.current_thread().name
     LOCATED_COMPILES.extend(c for c in COMPILED[compiled:] if c.startswith(f"{here}: "))
-    LOCATED_WARM_UP_ROUNDS.extend(
-        c for c in COMPILED[before_warm_up:] if re.fullmatch(r"jaxloc-warm-up_\d: jit\(_round\)", c)
-    )
+    rounds = re.compile(r"jaxloc-warm-up_\d+: jit\(_round\)")
+    LOCATED_WARM_UP_ROUNDS.extend(c for c in COMPILED[before_warm_up:] if rounds.fullmatch(c))
     return result
 
 
@@ -480,9 +461,7 @@ def test_the_warm_up_compiles_one_scan_per_round(located):
 def test_after_a_warm_up_localize_compiles_nothing(located):
     """The fixture's warm-up (a placeholder of the sequence's sizes, compiled in a background
     thread) left ``localize``, called before it finished, nothing to compile: every program, the
-    small eager ones included, ran from memory, also those whose compilation had not started when
-    ``localize`` reached them (the warm-up thread was busy until after the lowering)."""
-    assert LOCATED_QUEUED[0] > 0
+    small eager ones included, ran from memory or waited for the warm-up's compilation of them."""
     assert LOCATED_COMPILES == []
 
 

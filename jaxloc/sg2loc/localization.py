@@ -17,7 +17,7 @@ sequences of one shape stacked the same way). Every continuous setting of :class
 is a traced array leaf, so a sweep over its values compiles once; only sizes, strides, schedules,
 engines and variants are static.
 
-:func:`warm_up` compiles the programs of a later :func:`localize` call in a background thread,
+:func:`warm_up` compiles the programs of a later :func:`localize` call in background threads,
 from arguments that need only have the right shapes, so that compilation overlaps the caller's
 own work (reading the recording).
 """
@@ -25,8 +25,8 @@ own work (reading the recording).
 from __future__ import annotations
 
 import dataclasses
-import functools
-from concurrent.futures import Future, ThreadPoolExecutor, wait
+import threading
+from concurrent.futures import Future
 from typing import Any, NamedTuple
 
 import equinox as eqx
@@ -199,46 +199,24 @@ def _round(key, box, frames, scene, step_config, capacity: int, mesh: Mesh | Non
 
 
 def _call(program, *args):
-    if _QUEUED:  # a warm-up is compiling: wait for its compilation of this program, if it has one
-        queued = _QUEUED.get(_program_key(program, args))
-        if queued is not None:
-            wait([queued])
     return program(*args)
 
 
-#: Warm-ups' compilations not yet finished, by :func:`_program_key`. JAX makes a call wait for a
-#: program being compiled, not for one still queued: the call would compile it again itself.
-_QUEUED: dict[tuple, Future] = {}
-
-
-def _forget(key: tuple, compiled: Future) -> None:
-    """Drops ``key`` from :data:`_QUEUED` once its ``compiled`` future is done."""
-    if _QUEUED.get(key) is compiled:
-        del _QUEUED[key]
-
-
-def _program_key(program, args: tuple) -> tuple:
-    """``program`` with the structure, shapes and dtypes of ``args`` (values do not matter)."""
-    leaves, treedef = jax.tree.flatten(args)
-    return program, treedef, tuple((np.shape(x), getattr(x, "dtype", type(x))) for x in leaves)
-
-
 class _Lowering:
-    """Runs no program: lowers each jitted ``program`` for ``args``, has ``compiler`` (an
-    executor) compile it in the background while the next ones are lowered (in
-    :data:`_QUEUED` until compiled, for :func:`_call` to wait for), and returns zeros shaped like
-    its output, for :func:`warm_up`. ``compiled``: the compilations' futures, in call order."""
+    """Runs no program: lowers each jitted ``program`` for ``args`` in the calling thread, starts
+    its compilation at once in a thread of its own (so that a :func:`localize` started meanwhile
+    finds every program compiling, never queued: JAX makes a call wait for a program that is
+    being compiled), and returns zeros shaped like its output, for :func:`warm_up`.
+    ``compiled``: the compilations' futures, in call order."""
 
-    def __init__(self, compiler: ThreadPoolExecutor):
-        self.compiler = compiler
+    def __init__(self):
         self.compiled: list[Future] = []
 
     def __call__(self, program, *args):
         lowered = program.lower(*args)
-        compiled = self.compiler.submit(_compile, lowered)
-        key = _program_key(program, args)
-        _QUEUED.setdefault(key, compiled)  # a program met again compiles from memory then
-        compiled.add_done_callback(functools.partial(_forget, key))
+        compiled: Future = Future()
+        name = f"jaxloc-warm-up_{len(self.compiled)}"
+        threading.Thread(target=_compile, args=(lowered, compiled), name=name, daemon=True).start()
         self.compiled.append(compiled)
         if isinstance(lowered, jax.stages.Lowered):
             shapes = lowered.out_info
@@ -316,15 +294,15 @@ def warm_up(
     progress: bool = False,
     mesh: Mesh | None = None,
 ) -> Future:
-    """Compile the programs that :func:`localize` runs for these arguments in a background
-    thread, without running the filter; returns a :class:`concurrent.futures.Future` that is
+    """Compile the programs that :func:`localize` runs for these arguments in background
+    threads, without running the filter; returns a :class:`concurrent.futures.Future` that is
     done when they are compiled (its result is None; a failure is its exception).
 
     Only the arguments' shapes, dtypes and static settings matter, not their values: while a
     recording is still being read, pass a placeholder of its sizes (:meth:`Sequence.zeros`).
     :func:`localize` with arguments of the same shapes then compiles nothing, even while the
     warm-up is still compiling: it can start at once, and each of its programs waits for the
-    warm-up's compilation of it, queued or in flight (the first programs compile first).
+    warm-up's compilation of it (all of them compile side by side, one thread each).
 
     The programs are traced and lowered here, in the calling thread (that work holds the GIL, so
     overlapping it with the caller's own Python would gain nothing), and compiled in the
@@ -350,27 +328,44 @@ def warm_up(
     step_configs = _checked(scene, sequence, config, mesh)
     keys = jax.random.split(key, len(config.strides))
     bar_id = np.int32(0) if progress else None  # a placeholder: only its type matters
-    lowering = _Lowering(_compilers)
+    lowering = _Lowering()
     _run_rounds(keys, scene, sequence, config, step_configs, bar_id, mesh, lowering)
-    # queued after every compilation: it waits only for those still running
-    return _compilers.submit(_raise_first_failure, lowering.compiled)
+    return _all_done(lowering.compiled)
 
 
-#: The threads that compile the warm-ups' programs (started on first use). Two: the rounds'
-#: scans compile side by side, in less time than one after the other although one compilation
-#: keeps more than one core busy (localize-camera's two rounds, 160x120, 300 particles, on 2
-#: cores: 6.8-7.6 s in turn, 5.7-6.1 s side by side).
-_compilers = ThreadPoolExecutor(2, thread_name_prefix="jaxloc-warm-up")
+def _compile(lowered, done: Future) -> None:
+    """Compiles ``lowered`` into JAX's caches (keeping neither it nor the result: memory) and
+    settles ``done``."""
+    try:
+        lowered.compile()
+    except BaseException as error:  # handed to the caller through the future
+        done.set_exception(error)
+    else:
+        done.set_result(None)
 
 
-def _compile(lowered) -> None:
-    """Compile ``lowered`` into JAX's caches; keeps neither it nor the result (memory)."""
-    lowered.compile()
+def _all_done(futures: list[Future]) -> Future:
+    """A future that is done when every one of ``futures`` is, with the first failure."""
+    done: Future = Future()
+    remaining = [len(futures)]
+    lock = threading.Lock()
 
+    def settle(_):
+        with lock:
+            remaining[0] -= 1
+            if remaining[0]:
+                return
+        failures = [f.exception() for f in futures if f.exception() is not None]
+        if failures:
+            done.set_exception(failures[0])
+        else:
+            done.set_result(None)
 
-def _raise_first_failure(futures: list[Future]) -> None:
+    if not futures:
+        done.set_result(None)
     for future in futures:
-        future.result()
+        future.add_done_callback(settle)
+    return done
 
 
 def _checked(scene, sequence, config: SG2LocConfig, mesh) -> tuple[StepConfig, ...]:

@@ -29,7 +29,6 @@ explains the frames. ``relocalize_after = 0`` turns it off.
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 from typing import NamedTuple
 
@@ -49,10 +48,6 @@ from jaxloc.sg2loc.resampling import KLDConfig
 from jaxloc.sg2loc.scores import ObservationConfig
 from jaxloc.sg2loc.sequence import Sequence
 from jaxloc.sg2loc.verdict import Verdict, VerdictConfig, default_verdict
-
-#: Traces of the compiled update (a Python side effect runs only while tracing): one per
-#: combination of the inputs given (depth, colour) and of the state's shapes.
-TRACE_COUNTS: collections.Counter[str] = collections.Counter()
 
 
 class OnlineConfig(eqx.Module):
@@ -293,7 +288,6 @@ def update(
 
 @eqx.filter_jit
 def _update(state, observation, patches, motion, depth, rgb, tilt):
-    TRACE_COUNTS["update"] += 1
     verdict = default_verdict(observation.use_depth) if state.verdict is None else state.verdict
     config = dataclasses.replace(state.config, observation=observation, verdict=verdict)
     pixel_rows, pixel_cols = state.pixels

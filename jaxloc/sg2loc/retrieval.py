@@ -19,7 +19,6 @@ with extra frames or patches leaves its scores unchanged.
 
 from __future__ import annotations
 
-import collections
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -36,8 +35,6 @@ MIN_PATCH_NORM = 1e-12
 #: Bytes per stored embedding entry (float32): the storage the retrieval database needs.
 BYTES_PER_VALUE = 4
 
-#: Trace counts of the jitted entry points (tests use them to prove there is no retrace).
-TRACE_COUNTS: collections.Counter[str] = collections.Counter()
 
 
 class Gallery(eqx.Module):
@@ -256,7 +253,6 @@ def _flatten_patches(patch_embeddings, gallery: Gallery) -> Array:
 
 @eqx.filter_jit
 def _retrieve(patches: Array, gallery: Gallery) -> Retrieval:
-    TRACE_COUNTS["retrieve"] += 1
     frame_scores, valid = _frame_scores(patches, gallery)
     scores = jnp.sum(frame_scores, axis=0)
     ranking = jnp.argsort(-scores, stable=True).astype(jnp.int32)
