@@ -23,13 +23,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxloc.io import (
-    load_instance_map,
-    load_lidar_sequence,
-    load_road_normals,
-    load_triplet_map,
-    save_triplet_map,
-)
+from jaxloc.io import load_triplet_map, read_instance_map, read_road_normals, save_triplet_map
+from jaxloc.io.lidar_sequence import open_lidar_sequence
 from jaxloc.m2loc import RoadNormals, build_map, m2loc_config
 from jaxloc.mapping import MapBuildConfig, build_lidar_maps
 from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
@@ -54,7 +49,7 @@ def read_map(name: str):
     parts = name.split("+")
     points, labels, xy, normals, std = [], [], [], [], []
     for shift, part in enumerate(parts):
-        instances, cells = load_instance_map(MAPS / part), load_road_normals(MAPS / part)
+        instances, cells = read_instance_map(MAPS / part), read_road_normals(MAPS / part)
         offset = np.array([10_000.0 * shift, 0.0, 0.0])
         points.append(instances.points + offset)
         labels.append(instances.labels)
@@ -101,7 +96,7 @@ def sequence_rows(num_scans: int, folder: Path) -> list[str]:
     scans = make_lidar_sequence(world, (10.0, 200.0), (590.0, 200.0), num_scans, max_range=80.0)
     write_semantickitti_sequence(folder / "sequence", scans)
     points = int(np.mean([len(p) for p in scans.points]))
-    sequence = load_lidar_sequence(folder / "sequence")
+    sequence = open_lidar_sequence(folder / "sequence")
     maps, wall, cpu = timed(lambda: build_lidar_maps(sequence, MapBuildConfig(every=1)))
     return [
         "",

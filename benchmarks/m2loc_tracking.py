@@ -25,16 +25,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxloc.io import load_instance_map, load_road_normals
-from jaxloc.m2loc import (
-    TRACKED,
-    Tracker,
-    build_map,
-    localize_scan,
-    m2loc_config,
-    pad_scan,
-    track_step,
-)
+from jaxloc.io import read_instance_map, read_road_normals
+from jaxloc.m2loc import Tracker, build_map, localize_scan, m2loc_config, pad_scan
+from jaxloc.m2loc._tracking import TRACKED, track_step
 from jaxloc.synthetic.outdoor import make_drive, make_outdoor_world
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,8 +42,8 @@ def maps(names):
         for directory in sorted(DATA.iterdir()):
 
             def load(directory=directory):
-                m = load_instance_map(directory)
-                return m.points, m.labels, load_road_normals(directory)
+                m = read_instance_map(directory)
+                return m.points, m.labels, read_road_normals(directory)
 
             candidates.append((directory.name, load))
     for name, load in candidates:

@@ -23,7 +23,7 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 import numpy as np  # noqa: E402
 
 import jaxloc  # noqa: E402
-from jaxloc.io import load_instance_map, load_road_normals  # noqa: E402
+from jaxloc.io import read_instance_map, read_road_normals  # noqa: E402
 from jaxloc.m2loc import build_map, localize_scan, m2loc_config, pad_scan  # noqa: E402
 from jaxloc.synthetic.outdoor import make_query  # noqa: E402
 
@@ -39,8 +39,8 @@ def main() -> None:
     args = parser.parse_args()
     config = m2loc_config(3)
     for name in args.maps or sorted(p.name for p in DATA.iterdir()):
-        instances = load_instance_map(DATA / name)
-        normals = load_road_normals(DATA / name)
+        instances = read_instance_map(DATA / name)
+        normals = read_road_normals(DATA / name)
         triplet_map = build_map(instances.points, instances.labels, config, normals)
         rng = np.random.default_rng(args.seed)
         queries = [

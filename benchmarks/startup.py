@@ -68,13 +68,15 @@ def lidar_inputs(work: Path) -> list[str]:
         return [str(SHARED / "helipr_instance_maps" / "KAIST04"), str(scan), "--scales", "1"]
     import numpy as np
 
-    from jaxloc.io import save_lidar_maps
+    from jaxloc.io import write_instance_maps
     from jaxloc.m2loc import Instances
     from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
     world = make_outdoor_world("sparse", 1)
     sizes = np.ones(len(world.points))
-    save_lidar_maps(work / "map", Instances(world.points, world.labels, sizes), world.road_normals)
+    write_instance_maps(
+        work / "map", Instances(world.points, world.labels, sizes), world.road_normals
+    )
     rng = np.random.default_rng(0)
     query = make_query(world.points, world.labels, world.road_normals, rng, max_kept=25)
     rows = [f"{c} {x} {y} {z}" for c, (x, y, z) in zip(query.labels, query.points, strict=True)]

@@ -60,11 +60,11 @@ def _m2loc_inputs(count: int, queries: int):
     from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
     if (DATA / "KAIST04").is_dir():
-        from jaxloc.io import load_instance_map, load_road_normals
+        from jaxloc.io import read_instance_map, read_road_normals
 
-        instances = load_instance_map(DATA / "KAIST04")
+        instances = read_instance_map(DATA / "KAIST04")
         points, labels = instances.points, instances.labels
-        normals = load_road_normals(DATA / "KAIST04")
+        normals = read_road_normals(DATA / "KAIST04")
         source = "KAIST04"
     else:
         world = make_outdoor_world("dense", seed=1000, blocks=3)

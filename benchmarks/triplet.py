@@ -25,22 +25,19 @@ import jax.numpy as jnp
 import networkx as nx
 import numpy as np
 
-from jaxloc.io import load_instance_map, load_road_normals
+from jaxloc.io import read_instance_map, read_road_normals
 from jaxloc.m2loc import (
     build_map,
-    consistency_graph,
-    describe_query,
     localize_scan,
     m2loc_config,
     match_descriptors,
-    max_clique_exact,
-    max_clique_with_info,
     pad_scan,
     register,
-    register_query,
     tripletloc_config,
 )
-from jaxloc.m2loc._clique import max_clique_symmetric
+from jaxloc.m2loc._clique import max_clique_exact, max_clique_symmetric, max_clique_with_info
+from jaxloc.m2loc._matching import consistency_graph
+from jaxloc.m2loc._query import describe_query, register_query
 from jaxloc.synthetic.outdoor import make_query
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "helipr_instance_maps"
@@ -120,8 +117,8 @@ def main() -> None:
     )
     all_same, all_certified, profiles = [], [], {}
     for name in names:
-        instance_map = load_instance_map(DATA / name)
-        normals = load_road_normals(DATA / name)
+        instance_map = read_instance_map(DATA / name)
+        normals = read_road_normals(DATA / name)
         triplet_map = build_map(instance_map.points, instance_map.labels, config, normals)
         rng = np.random.default_rng(args.seed)
         queries = [

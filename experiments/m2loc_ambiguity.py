@@ -18,14 +18,8 @@ import m2loc_drives as drives
 import numpy as np
 from _atomic import write_text_atomic
 
-from jaxloc.m2loc import (
-    build_map,
-    describe_query,
-    localization_errors,
-    m2loc_config,
-    pad_scan,
-    register_query,
-)
+from jaxloc.m2loc import build_map, localization_errors, m2loc_config, pad_scan
+from jaxloc.m2loc._query import describe_query, register_query
 
 MARGINS = (0.0, 0.05, 0.1, 0.15, 0.2)
 

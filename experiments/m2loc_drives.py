@@ -37,26 +37,23 @@ import equinox as eqx
 import numpy as np
 from _atomic import write_text_atomic
 
-from jaxloc.io import load_instance_map, load_road_normals
+from jaxloc.io import read_instance_map, read_road_normals
 from jaxloc.m2loc import (
-    SUCCESS_RRE_DEG,
-    SUCCESS_RTE_M,
-    TRACKED,
-    WINDOW_MIN_CLIQUE,
-    WINDOW_MIN_INSTANCES,
     DriveConfig,
     TrackConfig,
     TripletConfig,
     build_map,
-    drive_window,
     localization_errors,
     localize_drive,
     localize_scan,
     m2loc_config,
-    query_capacity,
-    require_clique,
     tripletloc_config,
 )
+from jaxloc.m2loc._accumulation import WINDOW_MIN_CLIQUE, WINDOW_MIN_INSTANCES, require_clique
+from jaxloc.m2loc._drive import drive_window
+from jaxloc.m2loc._evaluation import SUCCESS_RRE_DEG, SUCCESS_RTE_M
+from jaxloc.m2loc._localization import query_capacity
+from jaxloc.m2loc._tracking import TRACKED
 from jaxloc.synthetic.outdoor import make_drive, make_outdoor_world
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -76,8 +73,8 @@ def maps():
         yield f"Synth-{kind}", world.points, world.labels, world.road_normals
     if DATA.exists():
         for directory in sorted(DATA.iterdir()):
-            m = load_instance_map(directory)
-            yield directory.name, m.points, m.labels, load_road_normals(directory)
+            m = read_instance_map(directory)
+            yield directory.name, m.points, m.labels, read_road_normals(directory)
 
 
 def band(size: int) -> int:
@@ -101,7 +98,7 @@ def odometry_chain(drive, rng, sigma_m, sigma_deg) -> np.ndarray:
 def fused_query(drive, chain, end: int, k: int, most: int | None = None, min_instances: int = 0):
     """Points, labels and scans fused of the window of scan ``end``: its last ``k`` scans, grown
     with older ones up to ``most`` (default ``k``) while it holds fewer than ``min_instances``
-    fused instances (``jaxloc.m2loc.drive_window``, as ``localize_drive`` and ``localize-lidar
+    fused instances (``drive_window``, as ``localize_drive`` and ``localize-lidar
     --accumulate k`` do)."""
     points, labels = [s.points for s in drive], [s.labels for s in drive]
     fused = drive_window(points, labels, chain, end, k, most, min_instances)

@@ -34,14 +34,9 @@ import numpy as np
 from _atomic import write_text_atomic
 from m2loc_rejection import verified_beyond_minimal_set
 
-from jaxloc.io import load_instance_map, load_road_normals
-from jaxloc.m2loc import (
-    build_map,
-    describe_query,
-    localization_errors,
-    m2loc_config,
-    register_query,
-)
+from jaxloc.io import read_instance_map, read_road_normals
+from jaxloc.m2loc import build_map, localization_errors, m2loc_config
+from jaxloc.m2loc._query import describe_query, register_query
 from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,7 +51,7 @@ def load_maps(names: list[str]):
             world = make_outdoor_world(name.split("-")[1], seed=0)
             yield name, world.points, world.labels, world.road_normals
         else:
-            yield name, *load_instance_map(DATA / name)[:2], load_road_normals(DATA / name)
+            yield name, *read_instance_map(DATA / name)[:2], read_road_normals(DATA / name)
 
 
 def run_query(triplet_map, query):

@@ -23,7 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxloc.io import load_instance_map, load_road_normals
+from jaxloc.io import read_instance_map, read_road_normals
 from jaxloc.m2loc import (
     build_map,
     localization_errors,
@@ -61,9 +61,9 @@ def maps():
         world = make_outdoor_world(kind, seed=0)
         yield f"Synth-{kind}", world.points, world.labels, world.road_normals
     if DATA.exists():
-        loaded = [(d.name, load_instance_map(d), d) for d in sorted(DATA.iterdir())]
+        loaded = [(d.name, read_instance_map(d), d) for d in sorted(DATA.iterdir())]
         for name, m, directory in sorted(loaded, key=lambda item: len(item[1].points)):
-            yield name, m.points, m.labels, load_road_normals(directory)
+            yield name, m.points, m.labels, read_road_normals(directory)
 
 
 def main() -> None:

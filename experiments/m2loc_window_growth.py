@@ -26,13 +26,8 @@ import m2loc_drives as drives
 import numpy as np
 from _atomic import write_text_atomic
 
-from jaxloc.m2loc import (
-    WINDOW_MIN_CLIQUE,
-    build_map,
-    localization_errors,
-    localize_scan,
-    m2loc_config,
-)
+from jaxloc.m2loc import build_map, localization_errors, localize_scan, m2loc_config
+from jaxloc.m2loc._accumulation import WINDOW_MIN_CLIQUE
 
 LENGTH = 10  # scans per drive, as m2loc_drives.py's default
 LEAST_SCANS = (2, 3, 5)

@@ -26,46 +26,7 @@ from typing import TYPE_CHECKING
 
 from jaxloc._lazy import lazy_exports
 
-#: Public name -> the module that defines it ("" for a subpackage or module of that name),
-#: imported on first use.
-_EXPORTS = {
-    "Camera": "camera",
-    "RayGrid": "camera",
-    "patch_grid": "camera",
-    "stride_grid": "camera",
-    "Capacity": "scene",
-    "SceneGraph": "scene",
-    "MapFormatError": "io.errors",
-    "load_scene": "io.scene_map",
-    "save_scene": "io.scene_map",
-    "RayHit": "raycasting.hits",
-    "raycast": "raycasting.hits",
-    "Render": "sg2loc.rendering",
-    "render": "sg2loc.rendering",
-    "render_batch": "sg2loc.rendering",
-    "Sequence": "sg2loc.sequence",
-    "enable_compilation_cache": "compilation_cache",
-    **dict.fromkeys(
-        (
-            "camera",
-            "compilation_cache",
-            "figures",
-            "geometry",
-            "io",
-            "lsq",
-            "m2loc",
-            "mapping",
-            "metrics",
-            "raycasting",
-            "scene",
-            "sg2loc",
-            "sharding",
-            "synthetic",
-        ),
-        "",
-    ),
-}
-__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, __file__)
 
 try:
     __version__ = version("jaxloc")

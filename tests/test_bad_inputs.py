@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxloc.io import load_embedding_table, load_instance_map, load_semantickitti_scan
 from jaxloc.io import meshes as mesh_io
+from jaxloc.io import read_embedding_table, read_instance_map, read_semantickitti_scan
 from jaxloc.m2loc import build_map
 from jaxloc.scene import Capacity, SceneGraph
 from jaxloc.sg2loc.particles import ParticleState, init_box, init_region, inject_uniform, predict
@@ -85,25 +85,25 @@ def test_truncated_or_garbage_mesh_files_name_the_file(tmp_path):
     data = ply.read_bytes()
     ply.write_bytes(data[: len(data) // 2])
     with pytest.raises(ValueError, match=r"chair\.ply: not a readable mesh file"):
-        mesh_io.load_meshes(ply)
+        mesh_io.read_meshes(ply)
     glb = tmp_path / "room.glb"
     glb.write_bytes(b"garbage!" * 16)
     with pytest.raises(ValueError, match=r"room\.glb: not a readable mesh file"):
-        mesh_io.load_meshes(glb)
+        mesh_io.read_meshes(glb)
     with pytest.raises(ValueError, match=r"chair\.ply: not a readable mesh file"):
-        mesh_io.load_meshes([ply])
+        mesh_io.read_meshes([ply])
 
 
 def test_mesh_file_with_nan_vertex_or_no_faces(tmp_path):
     nan_obj = tmp_path / "nan.obj"
     nan_obj.write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
-    meshes = list(mesh_io.load_meshes(nan_obj).values())
+    meshes = list(mesh_io.read_meshes(nan_obj).values())
     with pytest.raises(ValueError, match="NaN/inf vertices"):
         SceneGraph.from_meshes(meshes, [0], [[1.0]])
     no_faces = tmp_path / "points.obj"
     no_faces.write_text("v 0 0 0\nv 1 0 0\n")
     with pytest.raises(ValueError, match="no triangle meshes"):
-        mesh_io.load_meshes(no_faces)
+        mesh_io.read_meshes(no_faces)
 
 
 @pytest.mark.parametrize("index", [-5, 99])
@@ -120,18 +120,18 @@ def test_mesh_file_whose_face_names_a_vertex_it_lacks(tmp_path, index):
     refused = rf"chair\.ply \(object 'chair'\): face 1 refers to vertex {index}, but the file has 4"
     for given in (ply, [ply]):
         with pytest.raises(ValueError, match=refused):
-            mesh_io.load_meshes(given)
+            mesh_io.read_meshes(given)
 
 
 def test_objects_file_that_is_not_utf8_or_truncated(tmp_path):
     binary = tmp_path / "objects.txt"
     binary.write_bytes(b"chair 0 \xff\xfe 1\n")
     with pytest.raises(ValueError, match=r"objects\.txt: not a UTF-8 text file"):
-        mesh_io.load_objects_file(binary)
+        mesh_io.read_objects_file(binary)
     truncated = tmp_path / "cut.txt"
     truncated.write_text("chair 0 1 2 3\ntable 1 1 2")  # the last line cut mid-embedding
     with pytest.raises(ValueError, match=r"cut\.txt:2: .* has 2 values, expected 3"):
-        mesh_io.load_objects_file(truncated)
+        mesh_io.read_objects_file(truncated)
 
 
 def _write_instance_map(root, text15: bytes) -> None:
@@ -144,7 +144,7 @@ def _write_instance_map(root, text15: bytes) -> None:
 def test_instance_map_file_that_is_not_utf8_names_the_file(tmp_path):
     _write_instance_map(tmp_path, b"0 1 2 3\n\xff\xfe 1 2\n")
     with pytest.raises(ValueError, match=r"15\.txt"):
-        load_instance_map(tmp_path)
+        read_instance_map(tmp_path)
 
 
 def test_instance_map_truncated_mid_line_or_empty(tmp_path):
@@ -152,11 +152,11 @@ def test_instance_map_truncated_mid_line_or_empty(tmp_path):
     cut.mkdir()
     _write_instance_map(cut, b"0 1 2 3\n1 4 5")
     with pytest.raises(ValueError, match=r"15\.txt:2: expected 4 fields"):
-        load_instance_map(cut)
+        read_instance_map(cut)
     empty = tmp_path / "empty"
     empty.mkdir()
     _write_instance_map(empty, b"")
-    instances = load_instance_map(empty)  # two vertices in all
+    instances = read_instance_map(empty)  # two vertices in all
     with pytest.raises(ValueError, match="at least 3 vertices"):
         build_map(instances.points, instances.labels)
 
@@ -168,21 +168,21 @@ def test_numbers_beyond_float32_in_a_file_are_refused_naming_it(tmp_path):
     part dropped with a ComplexWarning)."""
     _write_instance_map(tmp_path, b"0 1 2 3\n1 1e39 0 0\n")
     with pytest.raises(ValueError, match=r"15\.txt:2: .* beyond float32's range \(1e\+39"):
-        load_instance_map(tmp_path)
+        read_instance_map(tmp_path)
     table = tmp_path / "table.txt"
     table.write_text("chair 1e200 1e200\ntable 0 1\n")
     with pytest.raises(ValueError, match=r"table\.txt:1: embedding of 'chair' has a value beyond"):
-        load_embedding_table(table)
+        read_embedding_table(table)
     np.save(tmp_path / "big.npy", np.full((2, 3), 1e300))
     with pytest.raises(ValueError, match=r"big\.npy has a value beyond float32's range"):
-        load_embedding_table(tmp_path / "big.npy")
+        read_embedding_table(tmp_path / "big.npy")
     np.save(tmp_path / "complex.npy", np.eye(2) * 1j)
     complex_refused = r"complex\.npy: expected a \(K, d\) array of real numbers"
     with pytest.raises(ValueError, match=complex_refused):
-        load_embedding_table(tmp_path / "complex.npy")
+        read_embedding_table(tmp_path / "complex.npy")
     np.save(tmp_path / "empty.npy", np.zeros((3, 0)))  # was: a table of 0-dimensional embeddings
     with pytest.raises(ValueError, match=r"empty\.npy: expected a \(K, d\) array, got the empty"):
-        load_embedding_table(tmp_path / "empty.npy")
+        read_embedding_table(tmp_path / "empty.npy")
 
 
 def test_semantickitti_scan_truncated_or_mismatched(tmp_path):
@@ -191,11 +191,11 @@ def test_semantickitti_scan_truncated_or_mismatched(tmp_path):
     points[:-1].tofile(bin_path)  # 39 floats: a truncated record
     np.zeros(10, "<u4").tofile(label_path)
     with pytest.raises(ValueError, match="not a multiple of 4"):
-        load_semantickitti_scan(bin_path, label_path)
+        read_semantickitti_scan(bin_path, label_path)
     points.tofile(bin_path)
     np.zeros(9, "<u4").tofile(label_path)
     with pytest.raises(ValueError, match="9 labels for 10 points"):
-        load_semantickitti_scan(bin_path, label_path)
+        read_semantickitti_scan(bin_path, label_path)
 
 
 # ----------------------------------------------------------------------------- LiDAR maps

@@ -22,15 +22,11 @@ import pytest
 from _camera_fixtures import NYU40, Recording, room_objects
 
 from jaxloc.camera import Camera
-from jaxloc.io import (
-    ClassEmbeddings,
-    load_camera_sequence,
-    open_rscan_sequence,
-    patch_embeddings_from_labels,
-    read_rescan_transform,
-    read_sens_header,
-)
+from jaxloc.io import ClassEmbeddings, patch_embeddings_from_labels
+from jaxloc.io.camera_sequence import read_camera_sequence
 from jaxloc.io.label_images import patch_class_histograms
+from jaxloc.io.rscan_sequence import open_rscan_sequence, read_rescan_transform
+from jaxloc.io.scannet_sens import read_sens_header
 from jaxloc.scene import SceneGraph
 
 NUMBERS = [0, 1, 2, 3]
@@ -71,7 +67,7 @@ def test_sens_header_and_frames_read_as_written(recording):
     assert header.color_size == (96, 72) and header.depth_size == (48, 36)
     np.testing.assert_array_equal(header.K_color, rec.K(COLOR))
     assert header.depth_shift == 1000.0
-    loaded = load_camera_sequence(root / "sens" / "scene.sens")
+    loaded = read_camera_sequence(root / "sens" / "scene.sens")
     assert loaded.format == "sens" and loaded.frame_ids == tuple(NUMBERS)
     np.testing.assert_allclose(loaded.timestamps, np.asarray(STAMPS_US) * 1e-6, rtol=0, atol=1e-12)
 
@@ -81,9 +77,9 @@ def test_every_layout_loads_the_same_query(recording, layout):
     """The same frames as an export folder, a .sens file and a 3RScan sequence load into the same
     query (embeddings, ego-motion, tilt, depth, colour) and the same ground truth."""
     root, _ = recording
-    reference = load_camera_sequence(root / "export", width=64)
+    reference = read_camera_sequence(root / "export", width=64)
     path = root / "sens" / "scene.sens" if layout == "sens" else root / "3rscan" / "ref_scan"
-    other = load_camera_sequence(path, width=64)
+    other = read_camera_sequence(path, width=64)
     assert other.format == layout and other.frame_ids == reference.frame_ids
     for name in ("patch_embeddings", "ego_motion", "tilt", "depth", "rgb"):
         np.testing.assert_array_equal(
@@ -123,9 +119,9 @@ def test_a_rescan_is_expressed_in_its_reference_frame(recording, tmp_path):
     np.testing.assert_allclose(transform, rescan_to_ref, atol=1e-15)
     np.testing.assert_array_equal(read_rescan_transform(tmp_path / "3RScan.json", "ref_scan"),
                                   np.eye(4))  # fmt: skip
-    own_frame = load_camera_sequence(tmp_path / "rescan_id")
-    moved = load_camera_sequence(tmp_path / "rescan_id", transform=transform)
-    reference = load_camera_sequence(root / "export")
+    own_frame = read_camera_sequence(tmp_path / "rescan_id")
+    moved = read_camera_sequence(tmp_path / "rescan_id", transform=transform)
+    reference = read_camera_sequence(root / "export")
     assert np.abs(own_frame.poses_gt[:, :2] - reference.poses_gt[:, :2]).max() > 0.3
     np.testing.assert_allclose(moved.poses_gt[:, :3], reference.poses_gt[:, :3], atol=1e-5)
     yaw = np.angle(np.exp(1j * (moved.poses_gt[:, 3] - reference.poses_gt[:, 3])))
@@ -157,12 +153,12 @@ def test_intrinsics_not_of_the_pinhole_form_are_refused_naming_the_file(
     K[entry] = value
     np.savetxt(path, K)
     with pytest.raises(ValueError, match=r"intrinsic_color\.txt: not a pinhole intrinsic matrix"):
-        load_camera_sequence(export)
+        read_camera_sequence(export)
     K[entry] = np.eye(4)[entry]
     K[0, 0] = 0.0
     np.savetxt(path, K)
     with pytest.raises(ValueError, match=r"intrinsic_color\.txt: not a pinhole .*fx, fy must be"):
-        load_camera_sequence(export)
+        read_camera_sequence(export)
 
 
 def test_patch_histograms_equal_a_pixel_loop():
@@ -212,7 +208,7 @@ def test_label_images_load_as_embeddings_of_the_map_classes(recording, tmp_path)
         path.unlink()
     (export / "embeddings").rmdir()
     classes = ClassEmbeddings.onehot(CLASSES)
-    loaded = load_camera_sequence(
+    loaded = read_camera_sequence(
         export, labels_dir=tmp_path / "labels", classes=classes, label_map=id_map,
         patch_shape=(6, 8),
     )  # fmt: skip
@@ -223,7 +219,7 @@ def test_label_images_load_as_embeddings_of_the_map_classes(recording, tmp_path)
     np.testing.assert_allclose(emb[pure], onehot[pure], atol=1e-6)
     assert np.all(np.argmax(emb, -1)[pure] == np.argmax(onehot, -1)[pure])
     with pytest.raises(ValueError, match="class embeddings"):
-        load_camera_sequence(export, labels_dir=tmp_path / "labels")
+        read_camera_sequence(export, labels_dir=tmp_path / "labels")
 
 
 @pytest.mark.parametrize(
@@ -245,5 +241,5 @@ def test_corrupt_sens_files_name_the_file(recording, tmp_path, corrupt, message)
     bad.write_bytes(corrupt((root / "sens" / "scene.sens").read_bytes()))
     (tmp_path / "embeddings").symlink_to(root / "sens" / "embeddings")
     with pytest.raises(ValueError, match=message) as info:
-        load_camera_sequence(bad)
+        read_camera_sequence(bad)
     assert "bad.sens" in str(info.value)

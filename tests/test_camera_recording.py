@@ -1,5 +1,5 @@
 """``jaxloc.io.open_camera_recording``: a camera recording opened with its side files named as
-files (the map file, ``3RScan.json`` or a transform file), against ``load_camera_sequence`` given
+files (the map file, ``3RScan.json`` or a transform file), against ``read_camera_sequence`` given
 the same things as arrays; its errors; and ``write_camera_poses`` against the poses evo reads.
 
 The recording is the minimal ScanNet export folder of tests/test_camera_sequence.py (4-d patch
@@ -16,13 +16,9 @@ from _camera_fixtures import write_matrix
 from test_camera_sequence import write_folder
 
 from jaxloc.geometry import yaw_pose_to_se3
-from jaxloc.io import (
-    camera_pose_matrices,
-    load_camera_sequence,
-    open_camera_recording,
-    save_scene,
-    write_camera_poses,
-)
+from jaxloc.io import open_camera_recording, save_scene, write_camera_poses
+from jaxloc.io.camera_recording import camera_pose_matrices
+from jaxloc.io.camera_sequence import read_camera_sequence
 from jaxloc.scene import SceneGraph
 
 FRAMES = [0, 3, 7]
@@ -47,7 +43,7 @@ def _rigid(angle: float, shift) -> np.ndarray:
 def test_the_opener_is_load_camera_sequence_with_the_files_read(recording_and_map, tmp_path):
     folder, map_file = recording_and_map
     opened = open_camera_recording(folder, map_file=map_file, width=40, step=2)
-    direct = load_camera_sequence(folder, width=40, embedding_dim=4, step=2)
+    direct = read_camera_sequence(folder, width=40, embedding_dim=4, step=2)
     assert opened.frame_ids == direct.frame_ids == (0, 7) and opened.format == "scannet-export"
     np.testing.assert_array_equal(
         opened.sequence.patch_embeddings, direct.sequence.patch_embeddings
@@ -57,9 +53,9 @@ def test_the_opener_is_load_camera_sequence_with_the_files_read(recording_and_ma
     transform = _rigid(0.3, [0.5, -1.0, 0.0])
     write_matrix(tmp_path / "transform.txt", transform)
     by_file = open_camera_recording(folder, transform=tmp_path / "transform.txt")
-    by_array = load_camera_sequence(folder, transform=transform)
+    by_array = read_camera_sequence(folder, transform=transform)
     np.testing.assert_allclose(by_file.poses_gt, by_array.poses_gt, atol=1e-5)  # the file's digits
-    assert not np.allclose(by_file.poses_gt, load_camera_sequence(folder).poses_gt, atol=0.1)
+    assert not np.allclose(by_file.poses_gt, read_camera_sequence(folder).poses_gt, atol=0.1)
     column_major = transform.T.ravel().tolist()  # as 3RScan.json stores it
     scenes = [{"reference": "ref", "scans": [{"reference": "seq", "transform": column_major}]}]
     (tmp_path / "3RScan.json").write_text(json.dumps(scenes))

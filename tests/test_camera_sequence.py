@@ -16,7 +16,7 @@ from PIL import Image
 
 from jaxloc.camera import Camera
 from jaxloc.io.camera_frames import yaw_pose_and_tilt
-from jaxloc.io.camera_sequence import load_camera_sequence
+from jaxloc.io.camera_sequence import read_camera_sequence
 
 #: A ScanNet-like colour intrinsic matrix (ScanNet's 1296x968 colour camera, scaled by 1/8).
 K_COLOR = np.array(
@@ -94,7 +94,7 @@ def test_folder_poses_ego_motion_and_numeric_frame_order(tmp_path):
     for t in range(4):  # turn by 0.05 rad per frame about world z
         poses[t][:3, :3] = _rz(0.05 * t) @ poses[t][:3, :3]
     write_folder(tmp_path, [0, 2, 11, 102], poses)
-    folder = load_camera_sequence(tmp_path)
+    folder = read_camera_sequence(tmp_path)
     assert folder.frame_ids == (0, 2, 11, 102)
     np.testing.assert_array_equal(folder.sequence.patch_embeddings[:, 0, 0, 0], [1, 3, 12, 103])
     # frame t looks at yaw pi/2 + 0.05 t: the step along world +y is (cos, -sin)(0.05 t) forward
@@ -115,7 +115,7 @@ def test_intrinsics_and_resize_give_the_known_rays(tmp_path):
     image[:, 80:] = 255  # the edge at continuous x = 79.5 (between native pixels 79 and 80)
     Image.fromarray(image).save(tmp_path / "color" / "0.png")
     (tmp_path / "color" / "0.jpg").unlink()
-    folder = load_camera_sequence(tmp_path, width=81)
+    folder = read_camera_sequence(tmp_path, width=81)
     camera = folder.sequence.camera
     assert (camera.width, camera.height) == (81, 60)
     native = Camera(K_COLOR[0, 0], K_COLOR[1, 1], K_COLOR[0, 2], K_COLOR[1, 2], *NATIVE)
@@ -134,7 +134,7 @@ def test_a_working_size_that_is_not_a_positive_integer_is_refused(tmp_path, size
     """Was: "Camera.fx must be positive" from deep inside (width 0), or PIL's error."""
     write_folder(tmp_path, [0])
     with pytest.raises(ValueError, match=r"(width|height) must be an integer >= 1 \(pixels\)"):
-        load_camera_sequence(tmp_path, **size)
+        read_camera_sequence(tmp_path, **size)
 
 
 def test_depth_with_its_own_intrinsics_lands_on_the_right_pixels(tmp_path):
@@ -153,9 +153,9 @@ def test_depth_with_its_own_intrinsics_lands_on_the_right_pixels(tmp_path):
     Image.fromarray(millimetres).save(tmp_path / "depth" / "0.png")
     with pytest.raises(ValueError, match=r"0\.png: depth is 81x60, the colour images 162x121, "
                        r"and there is no .*intrinsic_depth\.txt"):  # fmt: skip
-        load_camera_sequence(tmp_path)
+        read_camera_sequence(tmp_path)
     write_matrix(tmp_path / "intrinsic" / "intrinsic_depth.txt", K_depth)
-    depth = load_camera_sequence(tmp_path).sequence.depth[0]
+    depth = read_camera_sequence(tmp_path).sequence.depth[0]
     for u, v in [(0, 0), (80, 60), (161, 120), (37, 99)]:
         x = (u - K_COLOR[0, 2]) / K_COLOR[0, 0]
         y = (v - K_COLOR[1, 2]) / K_COLOR[1, 1]
@@ -172,12 +172,12 @@ def test_invalid_poses_are_skipped_and_odometry_gives_the_motion(tmp_path):
     present, gives the ego-motion and tilt; pose/ stays the ground truth."""
     write_folder(tmp_path, [0, 1, 2])
     (tmp_path / "pose" / "1.txt").write_text("-inf -inf -inf -inf\n" * 4)
-    folder = load_camera_sequence(tmp_path)
+    folder = read_camera_sequence(tmp_path)
     assert folder.frame_ids == (0, 2) and folder.skipped == (1,)
     odometry = _looking_along_y([0, 0, 0], pitch_down=0.3)
     rows = [f"{n} " + " ".join(f"{v:.9f}" for v in odometry.ravel()) for n in (0, 1, 2)]
     (tmp_path / "odometry.txt").write_text("\n".join(rows) + "\n")
-    folder = load_camera_sequence(tmp_path)
+    folder = read_camera_sequence(tmp_path)
     np.testing.assert_allclose(folder.sequence.ego_motion, np.zeros((1, 4)), atol=1e-6)
     np.testing.assert_allclose(folder.sequence.tilt[:, 0], 0.3, atol=1e-6)
     np.testing.assert_allclose(folder.tilt_gt, 0.0, atol=1e-6)
@@ -193,19 +193,19 @@ def test_odometry_in_tum_and_kitti_files_gives_the_same_motion(tmp_path):
     odometry = [_looking_along_y([0.1 * t, 0.05 * t, 1.2], pitch_down=0.1 * t) for t in range(3)]
     rows = [f"{n} " + " ".join(repr(float(v)) for v in odometry[n].ravel()) for n in (0, 1, 2)]
     (tmp_path / "odometry.txt").write_text("\n".join(rows) + "\n")
-    numbered = load_camera_sequence(tmp_path).sequence
+    numbered = read_camera_sequence(tmp_path).sequence
     write_tum(tmp_path / "odometry.tum", np.stack(odometry), np.array([0.0, 1.0, 2.0]))
     write_kitti(tmp_path / "odometry.kitti", np.stack(odometry))
     for name in ("odometry.tum", "odometry.kitti"):
-        other = load_camera_sequence(tmp_path, odometry=tmp_path / name).sequence
+        other = read_camera_sequence(tmp_path, odometry=tmp_path / name).sequence
         np.testing.assert_allclose(other.ego_motion, numbered.ego_motion, atol=1e-9)
         np.testing.assert_allclose(other.tilt, numbered.tilt, atol=1e-9)
     write_kitti(tmp_path / "short.kitti", np.stack(odometry[:2]))
     with pytest.raises(ValueError, match=r"short\.kitti: 2 kitti poses for the recording's 3"):
-        load_camera_sequence(tmp_path, odometry=tmp_path / "short.kitti")
+        read_camera_sequence(tmp_path, odometry=tmp_path / "short.kitti")
     write_tum(tmp_path / "late.tum", np.stack(odometry), np.array([10.0, 11.0, 12.0]))
     with pytest.raises(ValueError, match=r"late\.tum: no pose at the time of frame 0"):
-        load_camera_sequence(tmp_path, odometry=tmp_path / "late.tum")
+        read_camera_sequence(tmp_path, odometry=tmp_path / "late.tum")
 
 
 # ----------------------------------------------------------------------------- bad inputs
@@ -213,18 +213,18 @@ def test_odometry_in_tum_and_kitti_files_gives_the_same_motion(tmp_path):
 
 def test_missing_files_and_folders_are_named(tmp_path):
     with pytest.raises(ValueError, match="not a camera recording"):
-        load_camera_sequence(tmp_path)
+        read_camera_sequence(tmp_path)
     with pytest.raises(FileNotFoundError) as info:
-        load_camera_sequence(tmp_path, "scannet-export")
+        read_camera_sequence(tmp_path, "scannet-export")
     assert info.value.filename.endswith("color")
     write_folder(tmp_path, [0, 5])
     (tmp_path / "embeddings" / "5.npy").unlink()
     with pytest.raises(FileNotFoundError) as info:
-        load_camera_sequence(tmp_path)
+        read_camera_sequence(tmp_path)
     assert info.value.filename.endswith("embeddings/5.npy")
     (tmp_path / "intrinsic" / "intrinsic_color.txt").unlink()
     with pytest.raises(FileNotFoundError) as info:
-        load_camera_sequence(tmp_path, "scannet-export")
+        read_camera_sequence(tmp_path, "scannet-export")
     assert info.value.filename.endswith("intrinsic_color.txt")
 
 
@@ -241,20 +241,20 @@ def test_bad_pose_files_name_the_file(tmp_path, content, message):
     write_folder(tmp_path, [0, 3])
     (tmp_path / "pose" / "3.txt").write_text(content)
     with pytest.raises(ValueError, match=message):
-        load_camera_sequence(tmp_path)
+        read_camera_sequence(tmp_path)
 
 
 def test_embeddings_of_the_wrong_dimension_or_shape(tmp_path):
     write_folder(tmp_path, [0, 1])
     with pytest.raises(ValueError, match=r"0\.npy: embeddings have 4 dims, the map's have 8"):
-        load_camera_sequence(tmp_path, embedding_dim=8)
+        read_camera_sequence(tmp_path, embedding_dim=8)
     np.save(tmp_path / "embeddings" / "1.npy", np.ones((3, 3, 4)))
     with pytest.raises(ValueError, match=r"1\.npy: shape \(3, 3, 4\) differs"):
-        load_camera_sequence(tmp_path)
+        read_camera_sequence(tmp_path)
     zeros = np.zeros((2, 3, 4))
     zeros[0, 0, 0] = 1.0
     np.save(tmp_path / "embeddings" / "1.npy", zeros)  # zero vectors: patches without evidence
-    loaded = load_camera_sequence(tmp_path).sequence.patch_embeddings
+    loaded = read_camera_sequence(tmp_path).sequence.patch_embeddings
     assert np.count_nonzero(np.linalg.norm(loaded[1], axis=-1)) == 1
 
 
@@ -263,7 +263,7 @@ def test_non_numeric_frame_names_and_an_eight_bit_depth(tmp_path):
     (tmp_path / "depth").mkdir()
     Image.new("L", NATIVE).save(tmp_path / "depth" / "0.png")
     with pytest.raises(ValueError, match=r"0\.png: expected a 16-bit one-channel depth image"):
-        load_camera_sequence(tmp_path)
+        read_camera_sequence(tmp_path)
     Image.new("RGB", NATIVE).save(tmp_path / "color" / "frame.jpg")
     with pytest.raises(ValueError, match=r"frame\.jpg: frame files must be named by their number"):
-        load_camera_sequence(tmp_path)
+        read_camera_sequence(tmp_path)

@@ -18,7 +18,7 @@ import pytest
 from _compilations import compilations
 
 from jaxloc.cli import main
-from jaxloc.io import load_semantickitti_scan
+from jaxloc.io import read_semantickitti_scan
 from jaxloc.m2loc import cluster_instances, localization_errors
 from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
@@ -183,7 +183,7 @@ def test_localize_lidar_text_output(map_dir, queries, tmp_path, capsys):
 def test_localize_lidar_semantickitti_bin_matches_centroids(map_dir, queries, tmp_path, capsys):
     query = queries[1]
     bin_path = write_semantickitti(tmp_path, query)
-    scan = load_semantickitti_scan(bin_path, tmp_path / "labels" / "000001.label")
+    scan = read_semantickitti_scan(bin_path, tmp_path / "labels" / "000001.label")
     assert len(cluster_instances(scan.points, scan.labels).points) == len(query.points)
     code, out, err = run(["localize-lidar", map_dir, bin_path, "--json", *CONFIG_ARGS], capsys)
     assert code == 0, err
@@ -198,7 +198,7 @@ def test_localize_lidar_real_map_and_scan(capsys):
     code, out, err = run(["localize-lidar", REAL_MAP, REAL_SCAN, "--json", *CONFIG_ARGS], capsys)
     assert code == 0, err
     document = json.loads(out)
-    scan = load_semantickitti_scan(REAL_SCAN, REAL_SCAN.with_suffix(".label"))
+    scan = read_semantickitti_scan(REAL_SCAN, REAL_SCAN.with_suffix(".label"))
     record = document["scans"][0]
     assert record["instances"] == len(cluster_instances(scan.points, scan.labels).points)
     pose = np.array(record["T_map_scan"])

@@ -247,12 +247,12 @@ def test_poses_out_loads_in_evo_and_gives_jaxlocs_errors(built, export_run):
     from evo.core.trajectory import PoseTrajectory3D
     from evo.tools import file_interface
 
-    from jaxloc.io import load_camera_sequence
+    from jaxloc.io.camera_sequence import read_camera_sequence
 
     report, _, tum = export_run
     estimate = file_interface.read_tum_trajectory_file(str(tum))
     np.testing.assert_array_equal(estimate.timestamps, FRAMES)
-    truth = load_camera_sequence(built[1])
+    truth = read_camera_sequence(built[1])
     reference = PoseTrajectory3D(
         positions_xyz=truth.poses_gt[:, :3],
         orientations_quat_wxyz=np.tile([1.0, 0, 0, 0], (len(FRAMES), 1)),

@@ -19,8 +19,8 @@ from _helipr_fixtures import FIRST_STAMP, PERIOD_NS, ns_to_seconds, tum_line, wr
 
 from jaxloc.cli import main
 from jaxloc.cli._lidar import _format_record
-from jaxloc.io import load_lidar_sequence
-from jaxloc.m2loc import WINDOW_MIN_CLIQUE, WINDOW_MIN_INSTANCES
+from jaxloc.io.lidar_sequence import open_lidar_sequence
+from jaxloc.m2loc._accumulation import WINDOW_MIN_CLIQUE, WINDOW_MIN_INSTANCES
 from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
 from jaxloc.synthetic.outdoor import make_outdoor_world
 
@@ -348,7 +348,7 @@ def test_accumulate_fuses_the_last_scans_through_odometry(built, sequence_dir, t
     assert "small_clique" not in scans[0]
     assert fused["summary"]["success_rate"] >= 0.75, scans
     # --odometry: LiDAR-frame poses (poses.txt holds KITTI's cam0 poses), one per scan localized
-    poses = load_lidar_sequence(sequence_dir).T_map_scan[::5]
+    poses = open_lidar_sequence(sequence_dir).T_map_scan[::5]
     odometry = tmp_path / "odometry.txt"
     np.savetxt(odometry, poses[:, :3].reshape(len(poses), 12))
     code, out, err = run(["localize-lidar", saved, *argv, "--odometry", odometry], capsys)

@@ -34,19 +34,19 @@ from jaxloc import SceneGraph
 from jaxloc.camera import Camera
 from jaxloc.io import (
     ClassEmbeddings,
-    load_camera_sequence,
     load_class_embeddings,
-    load_embedding_table,
-    load_meshes,
-    load_objects_file,
     load_scene,
     read_3rscan,
-    read_generic,
+    read_embedding_table,
     read_label_image,
-    read_rescan_transform,
+    read_labelled_ply,
+    read_meshes,
+    read_objects_file,
     read_scannet,
     save_scene,
 )
+from jaxloc.io.camera_sequence import read_camera_sequence
+from jaxloc.io.rscan_sequence import read_rescan_transform
 
 SETTINGS = settings(
     max_examples=12,
@@ -133,26 +133,26 @@ def check(root: Path, relative: str, damage_args, read) -> None:
 
 
 CASES = {
-    "export colour": ("export/color/1.jpg", lambda r: load_camera_sequence(r / "export")),
-    "export depth": ("export/depth/0.png", lambda r: load_camera_sequence(r / "export")),
-    "export pose": ("export/pose/1.txt", lambda r: load_camera_sequence(r / "export")),
+    "export colour": ("export/color/1.jpg", lambda r: read_camera_sequence(r / "export")),
+    "export depth": ("export/depth/0.png", lambda r: read_camera_sequence(r / "export")),
+    "export pose": ("export/pose/1.txt", lambda r: read_camera_sequence(r / "export")),
     "export intrinsics": (
         "export/intrinsic/intrinsic_depth.txt",
-        lambda r: load_camera_sequence(r / "export"),
+        lambda r: read_camera_sequence(r / "export"),
     ),
-    "export embeddings": ("export/embeddings/1.npy", lambda r: load_camera_sequence(r / "export")),
-    "sens": ("sens/scene.sens", lambda r: load_camera_sequence(r / "sens" / "scene.sens")),
+    "export embeddings": ("export/embeddings/1.npy", lambda r: read_camera_sequence(r / "export")),
+    "sens": ("sens/scene.sens", lambda r: read_camera_sequence(r / "sens" / "scene.sens")),
     "3rscan info": (
         "rscan/scan/sequence/_info.txt",
-        lambda r: load_camera_sequence(r / "rscan/scan"),
+        lambda r: read_camera_sequence(r / "rscan/scan"),
     ),
     "3rscan depth": (
         "rscan/scan/sequence/frame-000001.depth.pgm",
-        lambda r: load_camera_sequence(r / "rscan/scan"),
+        lambda r: read_camera_sequence(r / "rscan/scan"),
     ),
     "3rscan pose": (
         "rscan/scan/sequence/frame-000000.pose.txt",
-        lambda r: load_camera_sequence(r / "rscan/scan"),
+        lambda r: read_camera_sequence(r / "rscan/scan"),
     ),
     "3RScan.json": ("3RScan.json", lambda r: read_rescan_transform(r / "3RScan.json", "b")),
     "label image": ("labels/1.png", lambda r: read_label_image(r / "labels" / "1.png")),
@@ -181,12 +181,15 @@ CASES = {
         lambda r: read_3rscan(r / "rscan_recon"),
     ),
     "3rscan semseg": ("rscan_recon/semseg.v2.json", lambda r: read_3rscan(r / "rscan_recon")),
-    "generic ply": ("cloud.ply", lambda r: read_generic(r / "cloud.ply", r / "objects.txt")),
-    "objects file": ("objects.txt", lambda r: read_generic(r / "cloud.ply", r / "objects.txt")),
-    "embedding table": ("table.txt", lambda r: load_embedding_table(r / "table.txt")),
-    "embedding npy": ("table.npy", lambda r: load_embedding_table(r / "table.npy")),
-    "mesh object list": ("mesh_objects.txt", lambda r: load_objects_file(r / "mesh_objects.txt")),
-    "mesh file": ("mesh.ply", lambda r: load_meshes(r / "mesh.ply")),
+    "generic ply": ("cloud.ply", lambda r: read_labelled_ply(r / "cloud.ply", r / "objects.txt")),
+    "objects file": (
+        "objects.txt",
+        lambda r: read_labelled_ply(r / "cloud.ply", r / "objects.txt"),
+    ),
+    "embedding table": ("table.txt", lambda r: read_embedding_table(r / "table.txt")),
+    "embedding npy": ("table.npy", lambda r: read_embedding_table(r / "table.npy")),
+    "mesh object list": ("mesh_objects.txt", lambda r: read_objects_file(r / "mesh_objects.txt")),
+    "mesh file": ("mesh.ply", lambda r: read_meshes(r / "mesh.ply")),
 }
 
 

@@ -6,7 +6,7 @@ allowed out are ``ValueError`` (or a subclass, such as ``MapFormatError``) and
 Formats: SemanticKITTI scans (``.bin`` + ``.label``) and sequences (``poses.txt``, ``calib.txt``,
 ``times.txt``), HeLiPR scans of every sensor, SPVNAS labels and GT files (and a HeLiPR sequence
 read scan by scan), pose files (KITTI, 4x4, TUM), instance maps and road normals, centroid scan
-files (:func:`jaxloc.io.load_centroid_scan`), and the described map's ``.npz``. Few examples each,
+files (:func:`jaxloc.io.read_centroid_scan`), and the described map's ``.npz``. Few examples each,
 no deadline: a few seconds in all.
 """
 
@@ -22,18 +22,16 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from jaxloc.io import (
-    load_centroid_scan,
-    load_instance_map,
-    load_lidar_sequence,
-    load_road_normals,
-    load_semantickitti_scan,
-    load_sequence_scan,
     load_triplet_map,
-    read_helipr_gt,
+    read_centroid_scan,
+    read_instance_map,
     read_pose_file,
+    read_road_normals,
+    read_semantickitti_scan,
     save_triplet_map,
 )
-from jaxloc.io.helipr import load_helipr_scan
+from jaxloc.io.helipr import read_helipr_gt, read_helipr_scan
+from jaxloc.io.lidar_sequence import open_lidar_sequence, read_sequence_scan
 from jaxloc.m2loc import build_map, tripletloc_config
 
 #: Text a fuzzer inserts: non-finite numbers, overflowing ones, separators, comments, garbage,
@@ -158,7 +156,7 @@ def test_semantickitti_scan(pristine, tmp_path, steps, which):
     target = bin_path if which == "bin" else label_path
     target.write_bytes(mutate(target.read_bytes(), steps))
     try:
-        load_semantickitti_scan(bin_path, label_path)
+        read_semantickitti_scan(bin_path, label_path)
     except ValueError as error:
         assert "000001." in str(error)
 
@@ -169,7 +167,7 @@ def test_semantickitti_sequence(pristine, tmp_path, steps, which):
     folder = _copy(pristine, "kitti", tmp_path)
     (folder / which).write_bytes(mutate((folder / which).read_bytes(), steps))
     try:
-        load_lidar_sequence(folder)
+        open_lidar_sequence(folder)
     except FileNotFoundError:
         pass
     except ValueError as error:
@@ -195,7 +193,7 @@ def test_helipr_scan(tmp_path, steps, sensor, which):
     target = bin_path if which == "bin" else label_path
     target.write_bytes(mutate(target.read_bytes(), steps))
     try:
-        load_helipr_scan(bin_path, label_path, folder_name.lower())
+        read_helipr_scan(bin_path, label_path, folder_name.lower())
     except ValueError as error:
         assert str(stamp) in str(error), str(error)
 
@@ -214,9 +212,9 @@ def test_helipr_sequence_and_gt(pristine, tmp_path, steps, which):
         expect_clean_failure(lambda: read_helipr_gt(target), target)
 
     def read_all():
-        sequence = load_lidar_sequence(folder)
+        sequence = open_lidar_sequence(folder)
         for index in range(len(sequence.bins)):
-            load_sequence_scan(sequence, index)
+            read_sequence_scan(sequence, index)
 
     try:
         read_all()
@@ -240,8 +238,8 @@ def test_instance_maps_and_road_normals(pristine, tmp_path, steps, name):
     folder = _copy(pristine, "map", tmp_path)
     path = folder / ("RSN" if name == "road_normal.txt" else "instances") / name
     path.write_bytes(mutate(path.read_bytes(), steps))
-    expect_clean_failure(lambda: load_instance_map(folder), path)
-    expect_clean_failure(lambda: load_road_normals(folder), path)
+    expect_clean_failure(lambda: read_instance_map(folder), path)
+    expect_clean_failure(lambda: read_road_normals(folder), path)
 
 
 @FUZZ
@@ -249,7 +247,7 @@ def test_instance_maps_and_road_normals(pristine, tmp_path, steps, name):
 def test_centroid_scan_files(pristine, tmp_path, steps):
     path = tmp_path / "centroids.txt"
     path.write_bytes(mutate((pristine / "centroids.txt").read_bytes(), steps))
-    expect_clean_failure(lambda: load_centroid_scan(path, (15, 17, 18)), path)
+    expect_clean_failure(lambda: read_centroid_scan(path, (15, 17, 18)), path)
 
 
 @FUZZ

@@ -26,15 +26,14 @@ from _helipr_fixtures import (
 )
 from scipy.spatial.transform import Rotation
 
-from jaxloc.io import (
+from jaxloc.io import read_helipr_scan
+from jaxloc.io.helipr import choose_sensor, read_helipr_gt, read_helipr_points, read_spvnas_labels
+from jaxloc.io.lidar_sequence import (
     detect_layout,
     is_sequence_dir,
-    load_helipr_scan,
-    load_lidar_sequence,
-    load_sequence_scan,
-    read_helipr_gt,
+    open_lidar_sequence,
+    read_sequence_scan,
 )
-from jaxloc.io.helipr import choose_sensor, read_helipr_points, read_spvnas_labels
 from jaxloc.mapping import MapBuildConfig, build_lidar_maps
 from jaxloc.synthetic.lidar_scans import make_lidar_sequence
 from jaxloc.synthetic.outdoor import make_outdoor_world
@@ -132,7 +131,7 @@ def test_scan_reads_points_and_labels_of_every_sensor(scans, tmp_path):
         root = tmp_path / sensor
         write_helipr_sequence(root, scans, sensor, stamps=[stamp + i for i in range(6)])
         bin_path = root / "LiDAR" / sensor / f"{stamp + 2}.bin"
-        scan = load_helipr_scan(bin_path, root / "labels" / f"{stamp + 2}.label", FORMATS[sensor])
+        scan = read_helipr_scan(bin_path, root / "labels" / f"{stamp + 2}.label", FORMATS[sensor])
         np.testing.assert_array_equal(scan.points, scans.points[2])
         raw = scans.raw_labels[2]
         assert set(np.unique(scan.labels)) <= {8, 12, 15, 17, 18}
@@ -147,13 +146,13 @@ def test_label_count_and_non_finite_points_are_errors(scans, helipr_dir, tmp_pat
     label.write_bytes(label.read_bytes()[:-4])
     bin_path = root / "LiDAR" / "Ouster" / f"{FIRST_STAMP}.bin"
     with pytest.raises(ValueError, match=rf"{FIRST_STAMP}\.label: \d+ labels for \d+ points"):
-        load_helipr_scan(bin_path, label, "ouster")
+        read_helipr_scan(bin_path, label, "ouster")
     data = bytearray(bin_path.read_bytes())
     data[26 * 5 : 26 * 5 + 4] = struct.pack("<f", np.nan)  # x of point 5
     bin_path.write_bytes(bytes(data))
     label.write_bytes(pack_labels(scans.raw_labels[0]))
     with pytest.raises(ValueError, match=rf"{FIRST_STAMP}\.bin: non-finite point coordinates"):
-        load_helipr_scan(bin_path, label, "ouster")
+        read_helipr_scan(bin_path, label, "ouster")
 
 
 # ----------------------------------------------------------------------------- ground truth
@@ -188,7 +187,7 @@ def test_gt_lines_give_exact_stamps_and_xyzw_rotations(tmp_path):
 def test_scans_match_gt_lines_by_exact_stamp(scans, helipr_dir, tmp_path):
     """Every scan has its GT line here; then: a scan without a line is left out (skipped), a
     line without a scan is ignored, and a line 1 ns off matches nothing."""
-    sequence = load_lidar_sequence(helipr_dir)
+    sequence = open_lidar_sequence(helipr_dir)
     assert (sequence.layout, sequence.sensor, sequence.point_format, sequence.label_ids) == (
         "helipr", "Ouster", "ouster", "spvnas",
     )  # fmt: skip
@@ -200,7 +199,7 @@ def test_scans_match_gt_lines_by_exact_stamp(scans, helipr_dir, tmp_path):
     gt_stamps = [stamps[0] - PERIOD_NS, stamps[0], stamps[1] + 1, *stamps[2:5]]  # no scan 1, 5
     gt_poses = np.concatenate([scans.T_map_scan[:1], scans.T_map_scan[:5]])
     write_helipr_sequence(root, scans, stamps=stamps, gt_poses=gt_poses, gt_stamps=gt_stamps)
-    partial = load_lidar_sequence(root)
+    partial = open_lidar_sequence(root)
     np.testing.assert_array_equal(partial.timestamps, [stamps[i] for i in (0, 2, 3, 4)])
     assert [p.stem for p in partial.skipped] == [str(stamps[1]), str(stamps[5])]
     assert partial.unused_poses == 2  # the line before the first scan and the one 1 ns off
@@ -209,14 +208,14 @@ def test_scans_match_gt_lines_by_exact_stamp(scans, helipr_dir, tmp_path):
     wrong = tmp_path / "wrong_unit"
     write_helipr_sequence(wrong, scans, gt_stamps=[s // 1000 for s in stamps])
     with pytest.raises(ValueError, match="Ouster_gt.txt: no pose has the time of a scan"):
-        load_lidar_sequence(wrong)
+        open_lidar_sequence(wrong)
 
 
 def test_layout_detection_label_folders_and_sensor_choice(scans, helipr_dir, tmp_path):
     assert detect_layout(helipr_dir) == "helipr" and is_sequence_dir(helipr_dir)
     readme = tmp_path / "readme_layout"  # TripletLoc's README: label/, LiDAR/Ouster_filterd/
     write_helipr_sequence(readme, scans, "Ouster_filterd", label_folder="label")
-    sequence = load_lidar_sequence(readme)
+    sequence = open_lidar_sequence(readme)
     assert sequence.sensor == "Ouster_filterd" and sequence.labels[0].parent.name == "label"
     assert (readme / "LiDAR_GT" / "Ouster_gt.txt").is_file()
     both = tmp_path / "two_sensors"
@@ -224,18 +223,18 @@ def test_layout_detection_label_folders_and_sensor_choice(scans, helipr_dir, tmp
     write_helipr_sequence(both, scans, "Aeva")
     with pytest.raises(ValueError, match=r"several sensors \['Velodyne', 'Aeva'\]"):
         choose_sensor(both)
-    assert load_lidar_sequence(both, sensor="aeva").sensor == "Aeva"
+    assert open_lidar_sequence(both, sensor="aeva").sensor == "Aeva"
     write_helipr_sequence(both, scans, "Ouster")
-    assert load_lidar_sequence(both).sensor == "Ouster"  # several: Ouster
+    assert open_lidar_sequence(both).sensor == "Ouster"  # several: Ouster
     with pytest.raises(ValueError, match=r"no scans in LiDAR/Avia/"):
-        load_lidar_sequence(both, sensor="Avia")
+        open_lidar_sequence(both, sensor="Avia")
     (both / "LiDAR_GT" / "Velodyne_gt.txt").unlink()
     with pytest.raises(FileNotFoundError, match="Velodyne_gt.txt: missing ground-truth poses"):
-        load_lidar_sequence(both, sensor="Velodyne")
-    assert load_lidar_sequence(both, require_poses=False, sensor="Velodyne").T_map_scan is None
+        open_lidar_sequence(both, sensor="Velodyne")
+    assert open_lidar_sequence(both, require_poses=False, sensor="Velodyne").T_map_scan is None
     (both / "labels" / f"{FIRST_STAMP}.label").unlink()
     with pytest.raises(FileNotFoundError, match=rf"{FIRST_STAMP}\.label: missing label file"):
-        load_lidar_sequence(both)
+        open_lidar_sequence(both)
 
 
 # ----------------------------------------------------------------------------- same maps
@@ -250,17 +249,17 @@ def test_helipr_layout_builds_the_same_map_as_semantickitti(scans, tmp_path, sen
     stamp = AEVA_THRESHOLD - 3 * PERIOD_NS if sensor == "Aeva" else FIRST_STAMP  # 25 and 29 B
     stamps = [stamp + PERIOD_NS * i for i in range(6)]
     write_helipr_sequence(tmp_path / "h", scans, sensor, stamps=stamps)
-    helipr = load_lidar_sequence(tmp_path / "h")
+    helipr = open_lidar_sequence(tmp_path / "h")
     if sensor == "Aeva":
         sizes = {(p.stat().st_size / len(scans.points[i])) for i, p in enumerate(helipr.bins)}
         assert sizes == {25.0, 29.0}
     np.testing.assert_allclose(helipr.T_map_scan, scans.T_map_scan, atol=1e-12)
     write_kitti_twin(tmp_path / "k", scans, helipr.T_map_scan)
-    kitti = load_lidar_sequence(tmp_path / "k")
+    kitti = open_lidar_sequence(tmp_path / "k")
     assert kitti.layout == "semantickitti"
     np.testing.assert_array_equal(kitti.T_map_scan, helipr.T_map_scan)
     for index in range(6):
-        a, b = load_sequence_scan(helipr, index), load_sequence_scan(kitti, index)
+        a, b = read_sequence_scan(helipr, index), read_sequence_scan(kitti, index)
         for name in ("points", "labels", "instance_ids"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     config = MapBuildConfig(every=2)

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from jaxloc.io import load_lidar_sequence, read_pose_file, read_poses, write_kitti, write_tum
-from jaxloc.io.poses import format_ns_as_seconds, match_timestamps, seconds_to_ns
+from jaxloc.io import read_pose_file, write_kitti, write_tum
+from jaxloc.io.lidar_sequence import open_lidar_sequence
+from jaxloc.io.poses import format_ns_as_seconds, match_timestamps, read_poses, seconds_to_ns
 
 
 def random_poses(n: int, seed: int = 0) -> np.ndarray:
@@ -219,26 +220,26 @@ def test_times_txt_and_tum_poses_match_scans_by_time(tmp_path):
     poses = random_poses(4, seed=4)
     text = tum_text(["0.000000", "0.103736", "0.311040", "9.000000"], poses)
     (tmp_path / "poses.txt").write_text(text)
-    sequence = load_lidar_sequence(tmp_path)
+    sequence = open_lidar_sequence(tmp_path)
     assert sequence.layout == "plain"
     np.testing.assert_array_equal(sequence.timestamps, [0, 103735900, 311040000])
     np.testing.assert_allclose(sequence.T_map_scan, poses[:3], atol=1e-12)
     assert [p.name for p in sequence.skipped] == ["000002.bin"] and sequence.unused_poses == 1
     (tmp_path / "times.txt").write_text("0\n0.1\n")
     with pytest.raises(ValueError, match=r"times\.txt: 2 times for 4 scans"):
-        load_lidar_sequence(tmp_path)
+        open_lidar_sequence(tmp_path)
     (tmp_path / "times.txt").write_text("0\n0.1 2\n0.2\n0.3\n")
     with pytest.raises(ValueError, match=r"times\.txt:2: expected one time"):
-        load_lidar_sequence(tmp_path)
+        open_lidar_sequence(tmp_path)
 
 
 def test_tum_poses_without_scan_times_go_by_order(tmp_path):
     _plain_sequence(tmp_path, 3)
     poses = random_poses(3, seed=5)
     (tmp_path / "poses.txt").write_text(tum_text(["5", "6", "7"], poses))
-    sequence = load_lidar_sequence(tmp_path)
+    sequence = open_lidar_sequence(tmp_path)
     assert sequence.timestamps is None
     np.testing.assert_allclose(sequence.T_map_scan, poses, atol=1e-12)
     (tmp_path / "poses.txt").write_text(tum_text(["5", "6"], poses[:2]))
     with pytest.raises(ValueError, match=r"poses\.txt: 2 poses for 3 scans"):
-        load_lidar_sequence(tmp_path)
+        open_lidar_sequence(tmp_path)

@@ -9,13 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from jaxloc.io import (
-    load_instance_map,
-    load_lidar_sequence,
-    load_road_normals,
-    read_kitti_calibration,
-    save_lidar_maps,
-)
+from jaxloc.io import read_instance_map, read_road_normals, write_instance_maps
+from jaxloc.io.lidar_sequence import open_lidar_sequence, read_kitti_calibration
 from jaxloc.mapping import MapBuildConfig, build_lidar_maps, fit_plane
 from jaxloc.synthetic.lidar_scans import KITTI_TR, make_lidar_sequence, write_semantickitti_sequence
 from jaxloc.synthetic.outdoor import _terrain_normal, make_outdoor_world
@@ -45,7 +40,7 @@ def sequence_dir(scans, tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def built(sequence_dir):
-    return build_lidar_maps(load_lidar_sequence(sequence_dir), MapBuildConfig(every=EVERY))
+    return build_lidar_maps(open_lidar_sequence(sequence_dir), MapBuildConfig(every=EVERY))
 
 
 def write_text(path: Path, text: str) -> Path:
@@ -87,7 +82,7 @@ def test_kitti_camera_pose_and_tr_give_the_scan_to_map_transform(tmp_path):
     write_text(tmp_path / "poses.txt", "\n".join(" ".join(map(str, r)) for r in rows) + "\n")
     for name in ("000000", "000001"):
         write_scan(tmp_path, name, np.zeros((1, 3)), np.zeros(1))
-    sequence = load_lidar_sequence(tmp_path)
+    sequence = open_lidar_sequence(tmp_path)
     assert sequence.layout == "semantickitti"
     np.testing.assert_allclose(sequence.T_map_scan[0], np.eye(4), atol=1e-12)
     yaw_left = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
@@ -108,7 +103,7 @@ def test_scans_sort_numerically_and_plain_layout_reads_map_poses(tmp_path):
     # 4x4 rows, one with a '#' comment
     text = "\n".join(" ".join(map(str, p.ravel())) for p in poses) + "  # last\n"
     write_text(tmp_path / "poses.txt", text)
-    sequence = load_lidar_sequence(tmp_path)
+    sequence = open_lidar_sequence(tmp_path)
     assert sequence.layout == "plain"
     assert [p.stem for p in sequence.bins] == ["0", "11", "102"]
     assert [p.name for p in sequence.labels] == ["0.label", "11.label", "102.label"]
@@ -177,12 +172,12 @@ def test_road_normal_map_within_two_degrees(built):
 
 
 def test_written_maps_load_back(built, tmp_path):
-    save_lidar_maps(tmp_path, built.instances, built.road_normals)
-    instances = load_instance_map(tmp_path)
+    write_instance_maps(tmp_path, built.instances, built.road_normals)
+    instances = read_instance_map(tmp_path)
     by_class = np.concatenate([np.flatnonzero(built.instances.labels == c) for c in (15, 17, 18)])
     np.testing.assert_allclose(instances.points, built.instances.points[by_class], atol=1e-4)
     np.testing.assert_array_equal(instances.labels, built.instances.labels[by_class])
-    normals = load_road_normals(tmp_path)
+    normals = read_road_normals(tmp_path)
     np.testing.assert_allclose(normals.xy, built.road_normals.xy, atol=1e-4)
     np.testing.assert_allclose(normals.normals, built.road_normals.normals, atol=1e-6)
 
@@ -195,7 +190,7 @@ def test_plain_layout_gives_the_same_maps(scans, built, tmp_path):
         )
         raw.astype("<u4").tofile(tmp_path / f"{index}.label")
     np.savetxt(tmp_path / "poses.txt", scans.T_map_scan.reshape(-1, 16))
-    plain = build_lidar_maps(load_lidar_sequence(tmp_path), MapBuildConfig(every=EVERY))
+    plain = build_lidar_maps(open_lidar_sequence(tmp_path), MapBuildConfig(every=EVERY))
     np.testing.assert_allclose(plain.instances.points, built.instances.points, atol=1e-5)
     np.testing.assert_allclose(plain.road_normals.normals, built.road_normals.normals, atol=1e-6)
 
@@ -205,7 +200,7 @@ def test_real_semantickitti_scan_is_a_one_scan_sequence(tmp_path):
     for suffix in (".bin", ".label"):
         (tmp_path / f"000000{suffix}").write_bytes(REAL_SCAN.with_suffix(suffix).read_bytes())
     write_text(tmp_path / "poses.txt", " ".join(map(str, np.eye(4)[:3].ravel())) + "\n")
-    maps = build_lidar_maps(load_lidar_sequence(tmp_path), MapBuildConfig(every=1))
+    maps = build_lidar_maps(open_lidar_sequence(tmp_path), MapBuildConfig(every=1))
     assert len(maps.instances.points) >= 10  # trunks, poles and signs of a real street
     assert set(maps.instances.labels.tolist()) <= {15, 17, 18}
     assert len(maps.road_normals.xy) >= 5
@@ -219,7 +214,7 @@ def test_sequence_without_graph_points_is_an_error(scans, tmp_path):
     write_scan(tmp_path, "000000", scans.points[0][road_only], scans.raw_labels[0][road_only])
     np.savetxt(tmp_path / "poses.txt", np.eye(4)[:3].reshape(1, 12))
     with pytest.raises(ValueError, match="no instance of the classes"):
-        build_lidar_maps(load_lidar_sequence(tmp_path), MapBuildConfig(every=1))
+        build_lidar_maps(open_lidar_sequence(tmp_path), MapBuildConfig(every=1))
 
 
 def test_kitti_tr_is_the_documented_axes():

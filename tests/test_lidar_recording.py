@@ -5,7 +5,7 @@ writes for evo (``write_lidar_poses``), and ``open_triplet_map`` on a folder and
 
 The scans are six synthetic labelled scans of a one-block world (``make_lidar_sequence``), written
 in each layout; what a recording reads is checked against the layout readers it is built on
-(``load_lidar_sequence``, ``load_sequence_scan``, ``cluster_instances``)."""
+(``open_lidar_sequence``, ``read_sequence_scan``, ``cluster_instances``)."""
 
 from __future__ import annotations
 
@@ -18,17 +18,16 @@ import pytest
 from _helipr_fixtures import FIRST_STAMP, PERIOD_NS, ns_to_seconds, tum_line, write_helipr_sequence
 
 from jaxloc.io import (
-    load_centroid_scan,
-    load_instance_map,
-    load_lidar_sequence,
-    load_road_normals,
-    load_sequence_scan,
     open_lidar_recording,
     open_triplet_map,
-    save_lidar_maps,
+    read_centroid_scan,
+    read_instance_map,
+    read_road_normals,
     save_triplet_map,
+    write_instance_maps,
     write_lidar_poses,
 )
+from jaxloc.io.lidar_sequence import open_lidar_sequence, read_sequence_scan
 from jaxloc.m2loc import Instances, SmallMapWarning, build_map, cluster_instances, m2loc_config
 from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
 from jaxloc.synthetic.outdoor import make_outdoor_world
@@ -62,7 +61,9 @@ def layouts(world, scans, tmp_path_factory) -> dict[str, Path]:
     np.savetxt(plain / "poses.txt", scans.T_map_scan[:, :3].reshape(6, 12), fmt="%.17g")
     write_helipr_sequence(root / "helipr" / "KAIST05", scans)
     sizes = np.ones(len(world.points), np.int64)
-    save_lidar_maps(root / "map", Instances(world.points, world.labels, sizes), world.road_normals)
+    write_instance_maps(
+        root / "map", Instances(world.points, world.labels, sizes), world.road_normals
+    )
     return {
         "semantickitti": root / "kitti",
         "plain": plain,
@@ -85,7 +86,7 @@ def test_a_sequence_folder_is_its_scans_in_order(scans, layouts, layout):
     the layout's own reader and TripletLoc's clustering give them."""
     folder = layouts[layout]
     recording = open_lidar_recording(folder, every=2)
-    sequence = load_lidar_sequence(folder)
+    sequence = open_lidar_sequence(folder)
     assert len(recording) == 3 and recording.numbers == (0, 2, 4)
     assert recording.paths == sequence.bins[::2]
     assert [s.layout for s in recording.sequences] == [layout]
@@ -98,7 +99,7 @@ def test_a_sequence_folder_is_its_scans_in_order(scans, layouts, layout):
     else:
         assert recording.stamps == (None,) * 3 and recording.timestamps is None
     for i, index in enumerate((0, 2, 4)):
-        expected = load_sequence_scan(sequence, index)
+        expected = read_sequence_scan(sequence, index)
         np.testing.assert_array_equal(recording.scan(i).points, expected.points)
         np.testing.assert_array_equal(recording.scan(i).labels, expected.labels)
         clustered = cluster_instances(expected.points, expected.labels)
@@ -119,16 +120,16 @@ def test_scan_files_centroids_and_folders_in_one_recording(world, layouts, tmp_p
     assert recording.numbers == (0, 1, 2, 3) and recording.poses is None
     assert recording.stamps == (None, STAMPS[4], None, None) and recording.timestamps is None
     assert recording.sequences == () and recording.sources == (-1, -1, -1, -1)
-    sequence = load_lidar_sequence(layouts["semantickitti"])
-    expected = cluster_instances(*load_sequence_scan(sequence, 3)[:2])
+    sequence = open_lidar_sequence(layouts["semantickitti"])
+    expected = cluster_instances(*read_sequence_scan(sequence, 3)[:2])
     np.testing.assert_array_equal(recording.instances(0).points, expected.points)
-    helipr = load_lidar_sequence(layouts["helipr"])
-    expected = cluster_instances(*load_sequence_scan(helipr, 4)[:2])
+    helipr = open_lidar_sequence(layouts["helipr"])
+    expected = cluster_instances(*read_sequence_scan(helipr, 4)[:2])
     np.testing.assert_array_equal(recording.instances(1).points, expected.points)
-    points, labels = load_centroid_scan(centroids)
+    points, labels = read_centroid_scan(centroids)
     np.testing.assert_array_equal(recording.instances(2).points, points)
     np.testing.assert_array_equal(recording.instances(2).labels, labels)
-    as_map = load_instance_map(layouts["map"])
+    as_map = read_instance_map(layouts["map"])
     np.testing.assert_array_equal(recording.instances(3).points, as_map.points)
     for index in (2, 3):
         with pytest.raises(ValueError, match="instance centroids, not a labelled point scan"):
@@ -281,8 +282,8 @@ def test_open_triplet_map_of_a_folder_and_of_its_saved_file(world, layouts, tmp_
     and fits ``top_k`` to the map; broken forms raise naming the file."""
     config = m2loc_config(1, top_k=10)
     described = open_triplet_map(layouts["map"], config)
-    files = load_instance_map(layouts["map"])
-    direct = build_map(files.points, files.labels, config, load_road_normals(layouts["map"]))
+    files = read_instance_map(layouts["map"])
+    direct = build_map(files.points, files.labels, config, read_road_normals(layouts["map"]))
     for name in ("points", "descriptors", "rsn_normals"):
         np.testing.assert_array_equal(getattr(described, name), getattr(direct, name), name)
     assert described.has_rsn and described.config == config

@@ -10,17 +10,15 @@ import pytest
 from _compilations import COMPILED
 
 from jaxloc.m2loc import (
-    WINDOW_MIN_CLIQUE,
     LocalizationResult,
     build_map,
     fuse_scans,
-    grow_window,
     localization_errors,
     localize_scan,
     localize_window,
     m2loc_config,
-    require_clique,
 )
+from jaxloc.m2loc._accumulation import WINDOW_MIN_CLIQUE, grow_window, require_clique
 from jaxloc.synthetic.outdoor import make_drive, make_outdoor_world
 
 

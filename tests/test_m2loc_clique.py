@@ -5,7 +5,9 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from jaxloc.m2loc import consistency_graph, max_clique, max_clique_exact, max_clique_with_info
+from jaxloc.m2loc import max_clique
+from jaxloc.m2loc._clique import max_clique_exact, max_clique_with_info
+from jaxloc.m2loc._matching import consistency_graph
 
 
 def is_clique(adjacency, mask):

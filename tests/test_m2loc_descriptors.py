@@ -7,8 +7,8 @@ import jax
 import numpy as np
 import pytest
 
-from jaxloc.m2loc import DescriptorConfig, describe_map, describe_points
-from jaxloc.m2loc._descriptors import map_neighbour_lists, neighbour_capacity
+from jaxloc.m2loc import DescriptorConfig, describe_points
+from jaxloc.m2loc._descriptors import describe_map, map_neighbour_lists, neighbour_capacity
 
 CLASSES = (15, 17, 18)
 

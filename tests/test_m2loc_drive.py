@@ -15,15 +15,9 @@ import numpy as np
 import pytest
 
 from jaxloc.cli import main
-from jaxloc.io import load_instance_map, load_road_normals, open_lidar_recording, open_triplet_map
+from jaxloc.io import open_lidar_recording, open_triplet_map, read_instance_map, read_road_normals
 from jaxloc.m2loc import (
-    LOST,
-    RELOCALIZED,
-    STATUS_NAMES,
-    WINDOW_MIN_CLIQUE,
     DriveConfig,
-    ScanInstances,
-    ScanSource,
     Tracker,
     build_map,
     localize_drive,
@@ -31,9 +25,11 @@ from jaxloc.m2loc import (
     localize_window,
     m2loc_config,
     pad_scan,
-    query_capacity,
-    track_step,
 )
+from jaxloc.m2loc._accumulation import WINDOW_MIN_CLIQUE
+from jaxloc.m2loc._drive import STATUS_NAMES, ScanInstances, ScanSource
+from jaxloc.m2loc._localization import query_capacity
+from jaxloc.m2loc._tracking import LOST, RELOCALIZED, track_step
 from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
 from jaxloc.synthetic.outdoor import make_drive, make_outdoor_world
 
@@ -238,7 +234,7 @@ def test_a_simulated_drive_on_a_real_map_through_files(tmp_path):
     centroid files, a ground-truth file and an odometry file: ``open_lidar_recording`` +
     ``localize_drive(accumulate=3)`` gives what ``localize-lidar --accumulate 3`` gives."""
     folder = REAL_MAPS / "KAIST04"
-    instances, normals = load_instance_map(folder), load_road_normals(folder)
+    instances, normals = read_instance_map(folder), read_road_normals(folder)
     rng = np.random.default_rng(7000)
     scans = make_drive(instances.points, instances.labels, normals, rng, 6, max_kept=11)
     paths = []

@@ -10,17 +10,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxloc.m2loc import (
+from jaxloc.m2loc._clique import greedy_cliques, unpack_ranked
+from jaxloc.m2loc._hypotheses import (
     best_verified_clique,
     closed_form_poses,
-    consistency_graph,
-    greedy_cliques,
     grid_verified_fraction,
     host_map_grid,
     map_grid,
-    unpack_ranked,
-    verified_fraction,
 )
+from jaxloc.m2loc._matching import consistency_graph
+from jaxloc.m2loc._query import verified_fraction
 
 
 def random_graph(rng, n, density):

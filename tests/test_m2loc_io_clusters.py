@@ -5,13 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxloc.io import (
-    load_instance_map,
-    load_road_normals,
-    load_semantickitti_scan,
-    semantickitti_class_ids,
-)
-from jaxloc.m2loc import cluster_instances, euclidean_clusters, voxel_downsample
+from jaxloc.io import read_instance_map, read_road_normals, read_semantickitti_scan
+from jaxloc.io.semantickitti import semantickitti_class_ids
+from jaxloc.m2loc import cluster_instances
+from jaxloc.m2loc._clusters import euclidean_clusters, voxel_downsample
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SCAN = DATA / "semantickitti_scan"
@@ -82,7 +79,7 @@ def test_cluster_rejects_nan():
 
 @pytest.mark.skipif(not SCAN.exists(), reason="shared data absent")
 def test_real_semantickitti_scan_plausible_instances():
-    scan = load_semantickitti_scan(SCAN / "000000.bin", SCAN / "000000.label")
+    scan = read_semantickitti_scan(SCAN / "000000.bin", SCAN / "000000.label")
     assert scan.points.shape[0] > 100_000 and scan.points.dtype == np.float32
     inst = cluster_instances(scan.points, scan.labels)
     counts = {c: int(np.sum(inst.labels == c)) for c in (15, 17, 18)}
@@ -97,9 +94,9 @@ def test_real_semantickitti_scan_plausible_instances():
 
 @pytest.mark.skipif(not MAPS.exists(), reason="shared data absent")
 def test_real_instance_map_and_rsn_load():
-    m = load_instance_map(MAPS / "KAIST04")
+    m = read_instance_map(MAPS / "KAIST04")
     assert m.points.shape == (3923, 3) and set(np.unique(m.labels)) == {15, 17, 18}
-    r = load_road_normals(MAPS / "KAIST04")
+    r = read_road_normals(MAPS / "KAIST04")
     np.testing.assert_allclose(np.linalg.norm(r.normals, axis=1), 1.0, atol=1e-9)
     assert np.all(r.normals[:, 2] > 0.9)
 
@@ -124,15 +121,15 @@ def _write_map(root: Path, trunk_lines: str):
 def test_malformed_map_line_is_a_clear_error(tmp_path, lines, message):
     _write_map(tmp_path, "0 1 2 3\n" + lines)
     with pytest.raises(ValueError, match=message) as info:
-        load_instance_map(tmp_path)
+        read_instance_map(tmp_path)
     assert "15.txt:2" in str(info.value)
 
 
 def test_small_map_and_rsn_parse(tmp_path):
     _write_map(tmp_path, "0 1 2 3\n\n5 4 5 6\n")
-    m = load_instance_map(tmp_path)
+    m = read_instance_map(tmp_path)
     np.testing.assert_array_equal(m.labels, [15, 15, 17])
     np.testing.assert_array_equal(m.ids, [0, 5, 0])
     (tmp_path / "RSN" / "road_normal.txt").write_text("0 0 0 0 0 0.5\n")
     with pytest.raises(ValueError, match="zero-length"):
-        load_road_normals(tmp_path)
+        read_road_normals(tmp_path)

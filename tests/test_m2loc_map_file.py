@@ -175,12 +175,12 @@ def test_a_described_folder_is_kept_in_the_cache(world, tmp_path, monkeypatch):
     and with the cache off nothing is kept."""
     import jaxloc.m2loc._map as map_module
     from jaxloc import compilation_cache
-    from jaxloc.io import open_triplet_map, save_lidar_maps
+    from jaxloc.io import open_triplet_map, write_instance_maps
     from jaxloc.m2loc import Instances
 
     folder = tmp_path / "map"
     sizes = np.ones(len(world.points))
-    save_lidar_maps(folder, Instances(world.points, world.labels, sizes), world.road_normals)
+    write_instance_maps(folder, Instances(world.points, world.labels, sizes), world.road_normals)
     monkeypatch.delenv("JAXLOC_NO_CACHE", raising=False)
     monkeypatch.setitem(compilation_cache._PROGRAMS, "folder", tmp_path / "cache")
     config = m2loc_config(2, top_k=7)
@@ -222,7 +222,7 @@ def shapes_and_static(triplet_map):
 
 @pytest.mark.parametrize("case", ["m2loc", "tripletloc", "small"])
 def test_the_map_spec_is_what_build_map_returns(world, case):
-    from jaxloc.m2loc import triplet_map_spec
+    from jaxloc.m2loc._map import triplet_map_spec
 
     points, labels, normals = world.points, world.labels, world.road_normals
     config = m2loc_config(2, top_k=7)
@@ -247,13 +247,14 @@ def test_query_programs_compile_while_the_folder_is_described(world, tmp_path, m
     from concurrent.futures import Future
 
     from jaxloc import compilation_cache
-    from jaxloc.io import open_triplet_map, save_lidar_maps
-    from jaxloc.m2loc import Instances, localize_scan, query_capacity
+    from jaxloc.io import open_triplet_map, write_instance_maps
+    from jaxloc.m2loc import Instances, localize_scan
+    from jaxloc.m2loc._localization import query_capacity
     from jaxloc.synthetic.outdoor import make_query
 
     folder = tmp_path / "map"
     sizes = np.ones(len(world.points))
-    save_lidar_maps(folder, Instances(world.points, world.labels, sizes), world.road_normals)
+    write_instance_maps(folder, Instances(world.points, world.labels, sizes), world.road_normals)
     query = make_query(
         world.points, world.labels, world.road_normals, np.random.default_rng(4), max_kept=25
     )
@@ -299,7 +300,8 @@ def test_only_the_query_programs_of_small_graphs_compile_with_the_legacy_emitter
     """The legacy emitters compile the query program ~40 % faster where it runs as fast (up to
     LEGACY_EMITTERS_MAX_ASSOCIATIONS associations); M2Loc's three scales keep XLA's defaults."""
     from jaxloc import compilation_cache
-    from jaxloc.m2loc import _localization, triplet_map_spec
+    from jaxloc.m2loc import _localization
+    from jaxloc.m2loc._map import triplet_map_spec
 
     legacy = compilation_cache.legacy_emitter_options()
     assert legacy == {compilation_cache.LEGACY_EMITTER_OPTION: False}  # CPU, a known jaxlib

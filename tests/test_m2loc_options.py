@@ -18,12 +18,12 @@ from jaxloc.m2loc import (
     RoadNormals,
     TripletConfig,
     build_map,
-    consistency_graph,
     localization_errors,
     localize_scan,
     m2loc_config,
-    map_grid,
 )
+from jaxloc.m2loc._hypotheses import map_grid
+from jaxloc.m2loc._matching import consistency_graph
 from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 

@@ -14,9 +14,9 @@ from jaxloc.m2loc import (
     localize_scan,
     m2loc_config,
     register,
-    verified_fraction,
-    weighted_kabsch,
 )
+from jaxloc.m2loc._query import verified_fraction
+from jaxloc.m2loc._registration import weighted_kabsch
 from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 

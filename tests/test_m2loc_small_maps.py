@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from jaxloc.cli import main
-from jaxloc.io import load_triplet_map, save_lidar_maps, save_triplet_map
+from jaxloc.io import load_triplet_map, save_triplet_map, write_instance_maps
 from jaxloc.m2loc import (
     Instances,
     RoadNormals,
@@ -85,7 +85,7 @@ def test_saved_map_with_a_large_top_k_loads_clamped(small_world, tmp_path):
 
 def test_cli_localizes_in_a_19_vertex_map_with_a_note(small_world, queries, tmp_path, capsys):
     points, labels, normals = small_world
-    save_lidar_maps(tmp_path / "map", Instances(points, labels, np.ones(len(points))), normals)
+    write_instance_maps(tmp_path / "map", Instances(points, labels, np.ones(len(points))), normals)
     scans = []
     for index, query in enumerate(queries):
         rows = np.column_stack([query.labels, query.points])

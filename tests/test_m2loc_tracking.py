@@ -14,19 +14,21 @@ from _compilations import COMPILED
 
 from jaxloc.lsq import RobustLoss
 from jaxloc.m2loc import (
+    TrackConfig,
+    Tracker,
+    build_map,
+    localization_errors,
+    localize_scan,
+    m2loc_config,
+    pad_scan,
+)
+from jaxloc.m2loc._hypotheses import map_grid
+from jaxloc.m2loc._tracking import (
     LOST,
     PENDING,
     RELOCALIZED,
     TRACKED,
-    TrackConfig,
-    Tracker,
-    build_map,
     grid_nearest_same_class,
-    localization_errors,
-    localize_scan,
-    m2loc_config,
-    map_grid,
-    pad_scan,
     track_step,
 )
 from jaxloc.synthetic.outdoor import make_drive, make_outdoor_world

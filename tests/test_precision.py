@@ -24,9 +24,10 @@ from jax.extend import core as jax_core
 from jaxloc import render
 from jaxloc.camera import stride_grid
 from jaxloc.lsq import RobustLoss, solve_pose
-from jaxloc.m2loc import Tracker, build_map, m2loc_config, pad_scan, weighted_kabsch
+from jaxloc.m2loc import Tracker, build_map, m2loc_config, pad_scan
 from jaxloc.m2loc._matching import match_descriptors
 from jaxloc.m2loc._query import describe_query, register_query
+from jaxloc.m2loc._registration import weighted_kabsch
 from jaxloc.m2loc._tracking import TrackState
 from jaxloc.sg2loc.filter import run_pass
 from jaxloc.sg2loc.retrieval import Gallery, retrieve

@@ -16,8 +16,8 @@ from _camera_fixtures import (
     write_scannet_scan,
 )
 
-from jaxloc.io.embedding_table import load_embedding_table
-from jaxloc.io.ply import read_generic
+from jaxloc.io.embedding_table import read_embedding_table
+from jaxloc.io.ply import read_labelled_ply
 from jaxloc.io.rscan import read_3rscan
 from jaxloc.io.scannet import read_scannet
 from jaxloc.mapping import decimate, onehot_classes, scene_graph_from_reconstruction
@@ -122,7 +122,7 @@ def test_generic_mesh_and_point_cloud(tmp_path, with_faces):
     """Objects in the objects file's order; a point cloud's objects become convex hulls with
     the bounds of their points."""
     ply, objects_file = _write_generic(tmp_path, with_faces)
-    recon = read_generic(ply, objects_file)
+    recon = read_labelled_ply(ply, objects_file)
     assert [(o.object_id, o.class_id, o.label) for o in recon.objects] == [
         (9, 5, "chair"),
         (7, 3, "cabinet"),
@@ -139,13 +139,13 @@ def test_embedding_tables_by_label_and_by_object(scannet_dir, objects, tmp_path)
     names = sorted({label for label, _, _ in objects})
     text = tmp_path / "by_label.txt"
     text.write_text("".join(f"{n} {k + 1} 0.5 {-k}\n" for k, n in enumerate(names)))
-    scene = scene_graph_from_reconstruction(recon, load_embedding_table(text), TARGET)
+    scene = scene_graph_from_reconstruction(recon, read_embedding_table(text), TARGET)
     k = names.index("bed") + 1
     expected = np.array([k, 0.5, -(k - 1)]) / np.linalg.norm([k, 0.5, -(k - 1)])
     np.testing.assert_allclose(np.asarray(scene.embeddings[5]), expected, rtol=1e-6)
     table = np.arange(1, 3 * len(objects) + 1, dtype=np.float64).reshape(len(objects), 3)
     np.save(tmp_path / "by_object.npy", table)
-    by_object = load_embedding_table(tmp_path / "by_object.npy", by="object")
+    by_object = read_embedding_table(tmp_path / "by_object.npy", by="object")
     scene = scene_graph_from_reconstruction(recon, by_object, TARGET)
     np.testing.assert_allclose(
         np.asarray(scene.embeddings[4]), table[4] / np.linalg.norm(table[4]), rtol=1e-6
@@ -210,11 +210,11 @@ def test_unknown_label_segs_length_and_bad_tables(scannet_copy, tmp_path):
     bad = tmp_path / "table.txt"
     bad.write_text("chair 1 2\nbed 1 2 3\n")
     with pytest.raises(ValueError, match=r"table\.txt:2: 3 values"):
-        load_embedding_table(bad)
+        read_embedding_table(bad)
     pickled = tmp_path / "table.npy"
     np.save(pickled, np.array([{"a": 1}], dtype=object), allow_pickle=True)
     with pytest.raises(ValueError, match=r"table\.npy: not a numeric \.npy array"):
-        load_embedding_table(pickled)
+        read_embedding_table(pickled)
 
 
 def _spoil_last_face(path, index: int) -> None:
@@ -244,11 +244,11 @@ def test_a_face_naming_a_vertex_the_file_lacks_is_refused(scannet_copy, objects,
     ply, objects_file = _write_generic(tmp_path, with_faces=True)
     _spoil_last_face(ply, index)
     with pytest.raises(ValueError, match=refused):
-        read_generic(ply, objects_file)
+        read_labelled_ply(ply, objects_file)
 
 
 def test_missing_embedding_in_the_table_names_the_object(scannet_copy, tmp_path):
     table = tmp_path / "t.txt"
     table.write_text("floor 1 0\nwall 0 1\n")
     with pytest.raises(ValueError, match=r"t\.txt: no embedding for object 5 \('bed'"):
-        scene_graph_from_reconstruction(read_scannet(scannet_copy), load_embedding_table(table))
+        scene_graph_from_reconstruction(read_scannet(scannet_copy), read_embedding_table(table))

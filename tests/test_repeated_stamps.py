@@ -21,9 +21,9 @@ import pytest
 from PIL import Image
 
 from jaxloc.io.camera_recording import write_camera_poses
-from jaxloc.io.camera_sequence import load_camera_sequence, read_odometry
+from jaxloc.io.camera_sequence import read_camera_sequence, read_odometry
 from jaxloc.io.lidar_recording import open_lidar_recording
-from jaxloc.io.lidar_sequence import load_lidar_sequence, read_kitti_calibration
+from jaxloc.io.lidar_sequence import open_lidar_sequence, read_kitti_calibration
 from jaxloc.io.poses import read_pose_file, seconds_to_ns, write_tum
 from jaxloc.io.rscan_sequence import open_rscan_sequence, read_rescan_transform
 from jaxloc.io.scannet_export import open_scannet_export
@@ -38,7 +38,7 @@ WIDTH, HEIGHT = 16, 12
 K = np.array([[10.0, 0, 7.5, 0], [0, 10.0, 5.5, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
 #: The camera-to-world rotation of a camera looking along +x with z up (OpenCV axes).
 R_WORLD_CAM = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])
-#: ``load_camera_sequence`` without images in the query (the frames are still decoded).
+#: ``read_camera_sequence`` without images in the query (the frames are still decoded).
 NO_IMAGES = {"use_rgb": False, "use_depth": False}
 
 
@@ -116,7 +116,7 @@ def test_repeated_tum_stamps_are_refused_by_lidar_sequences_and_recordings(tmp_p
     poses = root / "poses.txt"
     poses.write_text(f"0.0 {IDENTITY}\n0.1 1 0 0 0 0 0 1\n0.1 9 0 0 0 0 0 1\n0.2 {IDENTITY}\n")
     with pytest.raises(ValueError, match=r"poses\.txt:3: stamp 0\.1 appears more than once"):
-        load_lidar_sequence(root)
+        open_lidar_sequence(root)
     poses.unlink()
     gt = tmp_path / "gt.txt"
     gt.write_text(f"0.0 {IDENTITY}\n0.0 7 0 0 0 0 0 1\n0.2 {IDENTITY}\n")
@@ -139,9 +139,9 @@ def test_times_txt_with_a_repeated_or_decreasing_time_is_refused(tmp_path, times
     (root / "times.txt").write_text(times)
     (root / "poses.txt").write_text(f"0.0 {IDENTITY}\n0.1 1 0 0 0 0 0 1\n0.2 2 0 0 0 0 0 1\n")
     with pytest.raises(ValueError, match=rf"times\.txt:{line}: {message}"):
-        load_lidar_sequence(root)
+        open_lidar_sequence(root)
     with pytest.raises(ValueError, match=rf"times\.txt:{line}: "):
-        load_lidar_sequence(root, require_poses=False)
+        open_lidar_sequence(root, require_poses=False)
 
 
 # --------------------------------------------------------------- two files of one scan number
@@ -170,13 +170,13 @@ def test_two_scans_named_by_one_number_or_stamp_are_refused(tmp_path):
         f"{velodyne / '01.bin'} and {velodyne / '1.bin'}: two scans named by the same number 1"
     )
     with pytest.raises(ValueError, match=re.escape(message)):
-        load_lidar_sequence(root)
+        open_lidar_sequence(root)
     root = write_helipr_sequence(tmp_path / "helipr", [STAMP, f"0{STAMP}", STAMP + 100], [STAMP])
     scans = root / "LiDAR" / "Ouster"
     message = f"{scans / f'0{STAMP}.bin'} and {scans / f'{STAMP}.bin'}: two scans named by the "
     message += f"same stamp {STAMP}"
     with pytest.raises(ValueError, match=re.escape(message)):
-        load_lidar_sequence(root)
+        open_lidar_sequence(root)
     with pytest.raises(ValueError, match="two scans named by the same stamp"):
         open_lidar_recording(root)
 
@@ -300,7 +300,7 @@ def test_sens_timestamps_must_increase_when_odometry_is_matched_by_time(tmp_path
         f"0 {IDENTITY}\n0.033333 1 0 0 0 0 0 1\n0.066666 2 0 0 0 0 0 1\n"
     )
     with pytest.raises(ValueError, match=r"scene\.sens.*frame 1.*timestamp"):
-        load_camera_sequence(path, **NO_IMAGES)
+        read_camera_sequence(path, **NO_IMAGES)
 
 
 def test_write_tum_refuses_two_poses_at_one_time(tmp_path):
@@ -314,7 +314,7 @@ def test_write_tum_refuses_two_poses_at_one_time(tmp_path):
 def test_poses_of_frames_without_distinct_times_are_written_by_frame_number(tmp_path):
     """A ``.sens`` file with zero timestamps: ``--poses-out`` falls back to the frame numbers, as
     for formats without timestamps (it wrote three poses at t = 0)."""
-    recording = load_camera_sequence(write_sens(tmp_path / "scene.sens", [0, 0, 0]), **NO_IMAGES)
+    recording = read_camera_sequence(write_sens(tmp_path / "scene.sens", [0, 0, 0]), **NO_IMAGES)
     assert recording.timestamps.tolist() == [0.0, 0.0, 0.0]
     path = tmp_path / "poses.txt"
     write_camera_poses(path, recording, np.zeros((3, 4)))

@@ -15,7 +15,7 @@ from conftest import cast_padded, random_meshes, random_rays
 
 from jaxloc import raycast
 from jaxloc.io import MapFormatError, scene_map
-from jaxloc.io.meshes import load_objects_file, load_scene_from_files
+from jaxloc.io.meshes import read_mesh_scene, read_objects_file
 from jaxloc.io.scene_map import load_scene, save_scene
 from jaxloc.scene import Capacity, SceneGraph
 
@@ -563,7 +563,7 @@ def test_load_scene_from_glb_and_objects_file(tmp_path):
     (tmp_path / "objects.txt").write_text(
         "# name label embedding\n\nlamp 4 0 0 2\ntable 1 1 1 0  # trailing comment\nchair 0 3 0 4\n"
     )
-    scene = load_scene_from_files(tmp_path / "room.glb", tmp_path / "objects.txt")
+    scene = read_mesh_scene(tmp_path / "room.glb", tmp_path / "objects.txt")
     np.testing.assert_array_equal(np.asarray(scene.labels), [4, 1, 0])  # objects-file order
     np.testing.assert_allclose(
         np.asarray(scene.embeddings), [[0, 0, 1], [2**-0.5, 2**-0.5, 0], [0.6, 0, 0.8]], atol=1e-6
@@ -586,13 +586,13 @@ def test_load_scene_from_a_list_of_ply_files(tmp_path):
         mesh.export(tmp_path / f"{name}.ply")
         paths.append(tmp_path / f"{name}.ply")
     (tmp_path / "objects.txt").write_text("sofa 2 1 0\nwall 0 0 1\n")
-    scene = load_scene_from_files(paths, tmp_path / "objects.txt")
+    scene = read_mesh_scene(paths, tmp_path / "objects.txt")
     assert scene.num_objects == 2 and scene.num_triangles == 24
     np.testing.assert_array_equal(np.asarray(scene.labels), [2, 0])
     sofa = np.asarray(scene.triangles)[np.asarray(scene.triangle_object) == 0]
     np.testing.assert_allclose(sofa.reshape(-1, 3).min(0), [2, -1, -1], atol=1e-6)
     # A single .ply file is one object named by its stem.
-    single = load_scene_from_files(paths[0], _write(tmp_path / "one.txt", "wall 5 1 2 3\n"))
+    single = read_mesh_scene(paths[0], _write(tmp_path / "one.txt", "wall 5 1 2 3\n"))
     assert single.num_objects == 1 and int(single.labels[0]) == 5
 
 
@@ -641,7 +641,7 @@ def _write(path, text):
 def test_objects_file_errors_are_clear(tmp_path, text, match):
     _write_glb(tmp_path / "room.glb")
     with pytest.raises(ValueError, match=match):
-        load_scene_from_files(tmp_path / "room.glb", _write(tmp_path / "objects.txt", text))
+        read_mesh_scene(tmp_path / "room.glb", _write(tmp_path / "objects.txt", text))
 
 
 def test_mesh_file_errors_name_the_object(tmp_path):
@@ -649,8 +649,8 @@ def test_mesh_file_errors_name_the_object(tmp_path):
     broken.vertices[1, 0] = np.nan
     broken.export(tmp_path / "bad.ply")
     with pytest.raises(ValueError, match=r"object 0 \('bad'\): mesh has NaN/inf vertices"):
-        load_scene_from_files([tmp_path / "bad.ply"], _write(tmp_path / "o.txt", "bad 0 1\n"))
+        read_mesh_scene([tmp_path / "bad.ply"], _write(tmp_path / "o.txt", "bad 0 1\n"))
     with pytest.raises(FileNotFoundError):
-        load_scene_from_files(tmp_path / "missing.glb", tmp_path / "o.txt")
-    names, labels, emb = load_objects_file(_write(tmp_path / "p.txt", "a 1 1e-3 -2.5E2\n"))
+        read_mesh_scene(tmp_path / "missing.glb", tmp_path / "o.txt")
+    names, labels, emb = read_objects_file(_write(tmp_path / "p.txt", "a 1 1e-3 -2.5E2\n"))
     assert names == ["a"] and labels.tolist() == [1] and emb.tolist() == [[1e-3, -250.0]]

@@ -148,15 +148,16 @@ def run_bench_filter(args: argparse.Namespace) -> int:
 
 
 def run_bench_triplet(args: argparse.Namespace) -> int:
-    from jaxloc.m2loc import SUCCESS_RRE_DEG, SUCCESS_RTE_M, localization_errors, localize_drive
+    from jaxloc.m2loc import localization_errors, localize_drive
+    from jaxloc.m2loc._evaluation import SUCCESS_RRE_DEG, SUCCESS_RTE_M
     from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
     config = triplet_config(args)
     if args.map is not None:
-        from jaxloc.io import load_lidar_map
+        from jaxloc.io.instance_maps import read_lidar_map
 
         with reading():
-            instances, normals = load_lidar_map(args.map, config.descriptor.classes)
+            instances, normals = read_lidar_map(args.map, config.descriptor.classes)
         if normals is None:
             raise InputError(f"{args.map}: queries are drawn on RSN/road_normal.txt, missing")
         points, labels, name = instances.points, instances.labels, str(args.map)

@@ -161,7 +161,7 @@ def _config(args: argparse.Namespace):
 
 
 def _refine_last(scene, folder, last_pose) -> dict:
-    from jaxloc.io import camera_pose_matrices
+    from jaxloc.io.camera_recording import camera_pose_matrices
     from jaxloc.metrics import position_error, rotation_error_deg
     from jaxloc.sg2loc.refine import refine
 

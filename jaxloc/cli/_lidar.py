@@ -208,8 +208,8 @@ def check_localize_lidar(args: argparse.Namespace) -> None:
 
 
 def _scan_record(recording, index: int, step, track: bool) -> dict:
-    """The JSON record of scan ``index`` (a :class:`jaxloc.m2loc.DriveStep`)."""
-    from jaxloc.m2loc import STATUS_NAMES, localization_errors
+    """The JSON record of scan ``index`` (a ``DriveStep``)."""
+    from jaxloc.m2loc import TrackStatus, localization_errors
 
     scan, result = step.instances, step.result
     counts = {int(c): int(np.sum(scan.labels == c)) for c in np.unique(scan.labels)}
@@ -233,7 +233,7 @@ def _scan_record(recording, index: int, step, track: bool) -> dict:
         rte, rre = localization_errors(result.pose, recording.poses[index])
         record["rte_m"], record["rre_deg"] = float(rte), float(rre)
     if track:
-        record["track"] = STATUS_NAMES[step.status]
+        record["track"] = TrackStatus(step.status).name.lower()
     if step.fused is not None:
         record["fused_scans"] = int(step.fused.members.shape[1])
         record["fused_instances"] = len(step.fused.points)
@@ -244,7 +244,7 @@ def _scan_record(recording, index: int, step, track: bool) -> dict:
 
 def _why_not_valid(record: dict) -> str:
     """Why a pose that passed the clique and verification tests was refused ("" otherwise)."""
-    from jaxloc.m2loc import WINDOW_MIN_CLIQUE
+    from jaxloc.m2loc._accumulation import WINDOW_MIN_CLIQUE
 
     if record["ambiguous"]:
         return " (ambiguous: another place fits as well)"
@@ -282,7 +282,8 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from jaxloc.io import open_lidar_recording, save_triplet_map, write_lidar_poses
-    from jaxloc.m2loc import SUCCESS_RRE_DEG, SUCCESS_RTE_M, localize_drive
+    from jaxloc.m2loc import localize_drive
+    from jaxloc.m2loc._evaluation import SUCCESS_RRE_DEG, SUCCESS_RTE_M
 
     accumulate, drive_config = drive_options(args)  # checked by check_localize_lidar
     with reading():

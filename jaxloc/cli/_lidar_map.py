@@ -69,7 +69,7 @@ def check_build_lidar_map(args: argparse.Namespace) -> None:
 def run_build_lidar_map(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
-    from jaxloc.io import save_lidar_maps, save_triplet_map
+    from jaxloc.io import save_triplet_map, write_instance_maps
     from jaxloc.mapping import MapBuildConfig, build_lidar_maps
 
     start = time.perf_counter()
@@ -84,7 +84,7 @@ def run_build_lidar_map(args: argparse.Namespace) -> int:
         triplet_map = describe_map(
             instances.points, instances.labels, config, normals, "built", args.command
         )
-    save_lidar_maps(args.out_dir, instances, normals)
+    write_instance_maps(args.out_dir, instances, normals)
     if triplet_map is not None:
         save_triplet_map(triplet_map, args.save_map)
     counts = ", ".join(

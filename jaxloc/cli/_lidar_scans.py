@@ -1,6 +1,6 @@
 """The recording options of the LiDAR commands (``--format``, ``--sensor``, ``--poses-out``, the
 drive's ``--accumulate`` family), their checks, and the notes and errors of reading: the reading
-itself is :func:`jaxloc.io.open_lidar_recording` and :func:`jaxloc.io.load_lidar_sequence`."""
+itself is :func:`jaxloc.io.open_lidar_recording` and :func:`jaxloc.io.lidar_sequence.open_lidar_sequence`."""
 
 from __future__ import annotations
 
@@ -136,11 +136,11 @@ def note_sequences(args: argparse.Namespace, sequences: Sequence) -> None:
 
 
 def open_sequence(path: Path, args: argparse.Namespace):
-    """:func:`jaxloc.io.load_lidar_sequence` with its poses, ``--format`` and ``--sensor``."""
-    from jaxloc.io import load_lidar_sequence
+    """:func:`jaxloc.io.lidar_sequence.open_lidar_sequence` with its poses, ``--format`` and ``--sensor``."""
+    from jaxloc.io.lidar_sequence import open_lidar_sequence
 
     with reading():
-        sequence = load_lidar_sequence(path, True, args.format, args.sensor)
+        sequence = open_lidar_sequence(path, True, args.format, args.sensor)
     note_sequences(args, [sequence])
     return sequence
 
@@ -154,7 +154,7 @@ def check_poses_out(args: argparse.Namespace) -> None:
 def drive_options(args: argparse.Namespace):
     """``--accumulate K --accumulate-max M --window-instances N`` (and that ``--odometry`` is
     used), checked against each other, as ``(K, jaxloc.m2loc.DriveConfig)`` (M = 2K and N =
-    :data:`jaxloc.m2loc.WINDOW_MIN_INSTANCES` by default; K, M >= 1 and N >= 0 are checked where
+    ``WINDOW_MIN_INSTANCES`` by default; K, M >= 1 and N >= 0 are checked where
     they are parsed, :func:`add_drive_options`)."""
     from jaxloc.m2loc import DriveConfig
 

@@ -75,7 +75,13 @@ def add_parser(commands) -> None:
 def run_build_scene_graph(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from jaxloc.io import load_embedding_table, read_3rscan, read_generic, read_scannet, save_scene
+    from jaxloc.io import (
+        read_3rscan,
+        read_embedding_table,
+        read_labelled_ply,
+        read_scannet,
+        save_scene,
+    )
     from jaxloc.mapping import class_embeddings, onehot_classes, scene_graph_from_reconstruction
 
     try:
@@ -86,10 +92,10 @@ def run_build_scene_graph(args: argparse.Namespace) -> int:
         else:
             if args.objects is None:
                 raise InputError("--format generic needs --objects FILE")
-            recon = read_generic(args.scan, args.objects, args.instance_property)
+            recon = read_labelled_ply(args.scan, args.objects, args.instance_property)
         table = None
         if args.embeddings is not None:
-            table = load_embedding_table(args.embeddings, args.embeddings_by)
+            table = read_embedding_table(args.embeddings, args.embeddings_by)
         scene = scene_graph_from_reconstruction(recon, table, args.target_vertices)
         classes = class_embeddings(recon, table)
     except ValueError as error:

@@ -4,7 +4,7 @@ A :class:`FrameSource` is what a reader of a camera recording returns (a ScanNet
 :mod:`jaxloc.io.scannet_export`; a ScanNet ``.sens`` file, :mod:`jaxloc.io.scannet_sens`; a 3RScan
 sequence, :mod:`jaxloc.io.rscan_sequence`): the colour and depth intrinsics and the frame numbers,
 and a loader of one frame at a time, so a long recording is never held in memory.
-:func:`jaxloc.io.camera_sequence.load_camera_sequence` turns the frames into a
+:func:`jaxloc.io.camera_sequence.read_camera_sequence` turns the frames into a
 :class:`~jaxloc.sg2loc.sequence.Sequence`.
 
 Conventions: ``T_world_cam`` is a 4x4 camera-to-world matrix (OpenCV camera frame, metres), the

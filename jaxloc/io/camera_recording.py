@@ -1,6 +1,6 @@
 """A camera recording opened for SG2Loc in one call, and its estimated poses written for evo.
 
-:func:`open_camera_recording` is :func:`~jaxloc.io.load_camera_sequence` with the recording's side
+:func:`open_camera_recording` is :func:`~jaxloc.io.camera_sequence.read_camera_sequence` with the recording's side
 files named as files: the map the recording is localized in (its object embeddings' dimension,
 and its class embeddings for label images), a label table mapping raw label ids to classes, and
 the transform of a 3RScan rescan into its reference scan's frame (``3RScan.json``, or a 4x4 matrix
@@ -22,7 +22,7 @@ import numpy as np
 from jaxloc.geometry import yaw_pose_to_se3
 from jaxloc.io._map_file import read_map_file
 from jaxloc.io.camera_frames import check_rigid, read_matrix
-from jaxloc.io.camera_sequence import CameraRecording, load_camera_sequence
+from jaxloc.io.camera_sequence import CameraRecording, read_camera_sequence
 from jaxloc.io.poses import write_kitti, write_tum
 from jaxloc.io.rscan_sequence import read_rescan_transform, scan_id_of
 from jaxloc.io.scannet import read_label_table
@@ -89,7 +89,7 @@ def open_camera_recording(
 
     Raises:
         FileNotFoundError, ValueError: naming the file, as
-            :func:`~jaxloc.io.load_camera_sequence`; both ``rescan_json`` and ``transform``; a
+            :func:`~jaxloc.io.camera_sequence.read_camera_sequence`; both ``rescan_json`` and ``transform``; a
             ``patch_shape`` below 1; label images without a ``map_file`` holding class embeddings.
     """
     if rescan_json is not None and transform is not None:
@@ -108,7 +108,7 @@ def open_camera_recording(
     if map_file is not None:
         dim = _embedding_dim(Path(map_file))
         classes = load_class_embeddings(map_file) if labels_dir is not None else None
-    return load_camera_sequence(
+    return read_camera_sequence(
         path,
         format,
         width,

@@ -35,6 +35,7 @@ from typing import NamedTuple
 import numpy as np
 from PIL import Image
 
+from jaxloc._lazy import renamed_names
 from jaxloc.camera import Camera
 from jaxloc.geometry import consecutive_ego_motions
 from jaxloc.io._npy import read_numeric_npy
@@ -108,7 +109,7 @@ def detect_camera_format(path: str | os.PathLike) -> str:
 
 def open_frame_source(path: str | os.PathLike, format: str | None = None) -> FrameSource:
     """The frame stream of ``path`` in its layout (detected unless ``format`` names one); the
-    query itself: :func:`load_camera_sequence`, or :func:`jaxloc.io.open_camera_recording`."""
+    query itself: :func:`read_camera_sequence`, or :func:`jaxloc.io.open_camera_recording`."""
     if format is None:
         format = detect_camera_format(path)
     openers = {
@@ -221,7 +222,7 @@ def _label_files(folder: Path) -> dict[int, Path]:
     return {int(p.stem): p for p in folder.iterdir() if p.suffix == ".png" and p.stem.isdigit()}
 
 
-def load_camera_sequence(
+def read_camera_sequence(
     path: str | os.PathLike,
     format: str | None = None,
     width: int | None = None,
@@ -384,3 +385,12 @@ def load_camera_sequence(
         tuple(skipped),
         scale_intrinsics(source.K_color, native, native),
     )
+
+
+#: Names of jaxloc 0.2, kept with a DeprecationWarning for one more release.
+__getattr__ = renamed_names(
+    __name__,
+    {
+        "load_camera_sequence": "read_camera_sequence",
+    },
+)

@@ -13,6 +13,7 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
+from jaxloc._lazy import renamed_names
 from jaxloc.io._npy import read_numeric_npy
 from jaxloc.io._text import data_lines, parse_finite_floats
 from jaxloc.io.reconstruction import ReconstructionObject
@@ -48,7 +49,7 @@ class EmbeddingTable(NamedTuple):
         )
 
 
-def load_embedding_table(
+def read_embedding_table(
     path: str | os.PathLike, by: Literal["label", "object"] = "label"
 ) -> EmbeddingTable:
     """Read an embedding table: text lines ``key e_1 ... e_d`` ('#' comments), or an ``.npy``
@@ -82,3 +83,12 @@ def load_embedding_table(
     if not vectors:
         raise ValueError(f"{path}: no embeddings")
     return EmbeddingTable(vectors, by, path)
+
+
+#: Names of jaxloc 0.2, kept with a DeprecationWarning for one more release.
+__getattr__ = renamed_names(
+    __name__,
+    {
+        "load_embedding_table": "read_embedding_table",
+    },
+)

@@ -52,6 +52,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxloc._lazy import renamed_names
 from jaxloc.io.poses import read_pose_file
 from jaxloc.io.semantickitti import LabelledScan
 
@@ -179,7 +180,7 @@ def read_spvnas_labels(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]
     return classes, words[:, 1].astype(np.int32)
 
 
-def load_helipr_scan(
+def read_helipr_scan(
     bin_path: str | os.PathLike,
     label_path: str | os.PathLike,
     point_format: str,
@@ -277,3 +278,12 @@ def helipr_scan_label(bin_path: str | os.PathLike) -> tuple[str, Path] | None:
         return None
     seq = path.parent.parent.parent
     return SENSOR_FORMATS[path.parent.name], label_folder(seq) / path.with_suffix(".label").name
+
+
+#: Names of jaxloc 0.2, kept with a DeprecationWarning for one more release.
+__getattr__ = renamed_names(
+    __name__,
+    {
+        "load_helipr_scan": "read_helipr_scan",
+    },
+)

@@ -14,9 +14,11 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxloc._lazy import renamed_names
 from jaxloc.io._atomic import write_text_atomic
 from jaxloc.io._text import read_float_table
-from jaxloc.m2loc import GRAPH_CLASSES, Instances, RoadNormals
+from jaxloc.m2loc import Instances, RoadNormals
+from jaxloc.m2loc._classes import GRAPH_CLASSES
 
 
 class InstanceMap(NamedTuple):
@@ -28,7 +30,7 @@ class InstanceMap(NamedTuple):
     ids: np.ndarray
 
 
-def load_instance_map(map_dir: str | Path, classes: tuple[int, ...] = GRAPH_CLASSES) -> InstanceMap:
+def read_instance_map(map_dir: str | Path, classes: tuple[int, ...] = GRAPH_CLASSES) -> InstanceMap:
     """Read ``<map_dir>/instances/<class>.txt`` files (lines ``id x y z``) into one InstanceMap.
 
     Raises:
@@ -47,7 +49,7 @@ def load_instance_map(map_dir: str | Path, classes: tuple[int, ...] = GRAPH_CLAS
     return InstanceMap(np.concatenate(points), np.concatenate(labels), np.concatenate(ids))
 
 
-def load_lidar_map(
+def read_lidar_map(
     map_dir: str | os.PathLike, classes: tuple[int, ...] = GRAPH_CLASSES, road_normals: bool = True
 ) -> tuple[InstanceMap, RoadNormals | None]:
     """An instance-map folder: its ``instances/<class>.txt`` of ``classes`` and, when the folder has
@@ -55,7 +57,7 @@ def load_lidar_map(
 
     Raises:
         FileNotFoundError: no such folder, or a class file missing (naming them).
-        ValueError: a malformed file (:func:`load_instance_map`, :func:`load_road_normals`).
+        ValueError: a malformed file (:func:`read_instance_map`, :func:`read_road_normals`).
     """
     root = Path(map_dir)
     if not root.is_dir():
@@ -63,14 +65,14 @@ def load_lidar_map(
     for class_id in classes:
         if not (root / "instances" / f"{class_id}.txt").is_file():
             raise FileNotFoundError(f"{root}: missing instances/{class_id}.txt (lines: id x y z)")
-    instances = load_instance_map(root, tuple(classes))
+    instances = read_instance_map(root, tuple(classes))
     normals = None
     if road_normals and (root / "RSN" / "road_normal.txt").is_file():
-        normals = load_road_normals(root)
+        normals = read_road_normals(root)
     return instances, normals
 
 
-def load_road_normals(map_dir: str | Path) -> RoadNormals:
+def read_road_normals(map_dir: str | Path) -> RoadNormals:
     """Read ``<map_dir>/RSN/road_normal.txt`` (lines ``x y nx ny nz std_deg``), normals unit-scaled.
 
     Raises:
@@ -88,12 +90,12 @@ def load_road_normals(map_dir: str | Path) -> RoadNormals:
     return RoadNormals(table[:, 0:2], table[:, 2:5] / norms[:, None], table[:, 5])
 
 
-def save_lidar_maps(
+def write_instance_maps(
     out_dir: str | os.PathLike, instances: Instances, road_normals: RoadNormals
 ) -> None:
     """Write ``instances/<class>.txt`` (lines ``id x y z``, one file per graph class, ids from 0)
     and ``RSN/road_normal.txt`` (lines ``x y nx ny nz std_deg``) under ``out_dir``, each file
-    atomically; the format :func:`load_instance_map` and :func:`load_road_normals` read."""
+    atomically; the format :func:`read_instance_map` and :func:`read_road_normals` read."""
     out = Path(out_dir)
     texts = {}
     for class_id in sorted(set(instances.labels.tolist()) | set(GRAPH_CLASSES)):
@@ -109,3 +111,15 @@ def save_lidar_maps(
     )
     for path, text in texts.items():
         write_text_atomic(path, text)
+
+
+#: Names of jaxloc 0.2, kept with a DeprecationWarning for one more release.
+__getattr__ = renamed_names(
+    __name__,
+    {
+        "load_instance_map": "read_instance_map",
+        "load_road_normals": "read_road_normals",
+        "save_lidar_maps": "write_instance_maps",
+        "load_lidar_map": "read_lidar_map",
+    },
+)

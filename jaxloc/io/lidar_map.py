@@ -26,19 +26,18 @@ from jaxloc.compilation_cache import cache_entry
 from jaxloc.io._atomic import write_npz_atomic
 from jaxloc.io._map_file import read_map_file
 from jaxloc.io.errors import MapFormatError
-from jaxloc.io.instance_maps import load_lidar_map
+from jaxloc.io.instance_maps import read_lidar_map
 from jaxloc.lsq import RobustLoss
 from jaxloc.m2loc import (
     DescriptorConfig,
     TripletConfig,
     TripletMap,
     build_map,
-    fit_config_to_map,
-    host_map_grid,
     m2loc_config,
     prepare_queries,
-    triplet_map_spec,
 )
+from jaxloc.m2loc._hypotheses import host_map_grid
+from jaxloc.m2loc._map import fit_config_to_map, triplet_map_spec
 
 #: The ``format`` entry of a triplet-map file (a file without it is refused).
 FORMAT_NAME = "jaxloc.TripletMap"
@@ -185,7 +184,7 @@ def open_triplet_map(
 ) -> TripletMap:
     """The described map at ``path``: a file saved by :func:`save_triplet_map` (loaded in about a
     second), or an instance-map folder (``instances/<class>.txt`` and, with ``config.use_rsn``,
-    ``RSN/road_normal.txt`` when present; :func:`~jaxloc.io.instance_maps.load_lidar_map`)
+    ``RSN/road_normal.txt`` when present; :func:`~jaxloc.io.instance_maps.read_lidar_map`)
     described with ``config`` (default ``m2loc_config(3)``).
 
     Args:
@@ -194,8 +193,8 @@ def open_triplet_map(
         replace: :class:`~jaxloc.m2loc.TripletConfig` fields to change that do not change the
             descriptors (``top_k``, ``min_clique``, ``use_rsn``...), applied to either
             configuration; ``top_k`` is then fitted to the map
-            (:func:`~jaxloc.m2loc.fit_config_to_map`).
-        query_capacities: padded scan sizes (:func:`~jaxloc.m2loc.query_capacity`) whose query
+            (``fit_config_to_map``).
+        query_capacities: padded scan sizes (``query_capacity``) whose query
             programs compile in the background while a folder is described
             (:func:`~jaxloc.m2loc.prepare_queries`; with the compilation cache on).
 
@@ -211,7 +210,7 @@ def open_triplet_map(
     replace = dict(replace or {})
     if not path.is_file():
         config = dataclasses.replace(config or m2loc_config(3), **replace)
-        instances, normals = load_lidar_map(path, config.descriptor.classes, config.use_rsn)
+        instances, normals = read_lidar_map(path, config.descriptor.classes, config.use_rsn)
         if query_capacities:
             try:
                 spec = triplet_map_spec(instances.points, instances.labels, config, normals)

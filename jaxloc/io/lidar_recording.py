@@ -3,16 +3,16 @@ stamps and poses, each scan read on demand.
 
 :func:`open_lidar_recording` takes a path or a list of paths, each one of:
 
-* a sequence folder in any layout of :func:`~jaxloc.io.load_lidar_sequence` (SemanticKITTI,
+* a sequence folder in any layout of :func:`~jaxloc.io.lidar_sequence.open_lidar_sequence` (SemanticKITTI,
   plain, HeLiPR / TripletLoc; ``layout``, ``sensor``): every ``every``-th of its scans, with their
   timestamps and poses when the folder has them;
 * ``NAME.bin``, a SemanticKITTI scan with ``NAME.label`` beside it or in ``../labels/`` (the
   dataset's layout), or a HeLiPR ``SEQ/LiDAR/<sensor>/<stamp>.bin`` with ``SEQ/labels/`` (its
   stamp kept);
 * ``NAME.txt``, instance centroids already extracted: lines ``class_id x y z`` (scan frame, metres;
-  ``#`` starts a comment; :func:`load_centroid_scan`);
+  ``#`` starts a comment; :func:`read_centroid_scan`);
 * a folder with ``instances/<class>.txt``, a scan in the map's own format
-  (:func:`~jaxloc.io.load_instance_map`).
+  (:func:`~jaxloc.io.read_instance_map`).
 
 ``gt=FILE`` replaces the poses by a pose file's (KITTI, 4x4 or TUM / HeLiPR lines,
 :func:`~jaxloc.io.read_pose_file`): by time when the file and every scan have timestamps (exact
@@ -32,19 +32,22 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxloc._lazy import renamed_names
 from jaxloc.io import helipr
 from jaxloc.io._text import data_lines
-from jaxloc.io.instance_maps import load_instance_map
+from jaxloc.io.instance_maps import read_instance_map
 from jaxloc.io.lidar_sequence import (
     LidarSequence,
     assign_poses,
     is_sequence_dir,
-    load_lidar_sequence,
-    load_sequence_scan,
+    open_lidar_sequence,
+    read_sequence_scan,
 )
 from jaxloc.io.poses import read_pose_file, write_kitti, write_tum
-from jaxloc.io.semantickitti import LabelledScan, load_semantickitti_scan
-from jaxloc.m2loc import GRAPH_CLASSES, ScanInstances, cluster_instances
+from jaxloc.io.semantickitti import LabelledScan, read_semantickitti_scan
+from jaxloc.m2loc import cluster_instances
+from jaxloc.m2loc._classes import GRAPH_CLASSES
+from jaxloc.m2loc._drive import ScanInstances
 
 #: Suffix of an instance-centroid scan file (lines ``class_id x y z``).
 CENTROID_SUFFIX = ".txt"
@@ -53,7 +56,7 @@ CENTROID_SUFFIX = ".txt"
 @dataclasses.dataclass(frozen=True, eq=False)
 class LidarRecording:
     """A LiDAR recording: N scans in order, read one at a time (a
-    :class:`jaxloc.m2loc.ScanSource`, what :func:`jaxloc.m2loc.localize_drive` reads).
+    ``ScanSource``, what :func:`jaxloc.m2loc.localize_drive` reads).
 
     Attributes:
         paths: per scan its file (``.bin``, centroid ``.txt``) or instance-map folder.
@@ -99,14 +102,14 @@ class LidarRecording:
         """
         path, source = self.paths[index], self.sources[index]
         if source >= 0:
-            return load_sequence_scan(self.sequences[source], self.numbers[index])
+            return read_sequence_scan(self.sequences[source], self.numbers[index])
         _check_scan_file(path)
         if path.is_dir() or path.suffix != ".bin":
             raise ValueError(f"{path}: instance centroids, not a labelled point scan")
         found = helipr.helipr_scan_label(path)
         if found is not None:
-            return helipr.load_helipr_scan(path, found[1], found[0])
-        return load_semantickitti_scan(path, _label_path(path))
+            return helipr.read_helipr_scan(path, found[1], found[0])
+        return read_semantickitti_scan(path, _label_path(path))
 
     def instances(self, index: int, classes: Sequence[int] = GRAPH_CLASSES) -> ScanInstances:
         """Scan ``index``'s instance centroids of ``classes``: clustered from its labelled points
@@ -120,9 +123,9 @@ class LidarRecording:
         if self.sources[index] < 0 and (path.is_dir() or path.suffix != ".bin"):
             _check_scan_file(path)
             if path.is_dir():
-                found = load_instance_map(path, tuple(classes))
+                found = read_instance_map(path, tuple(classes))
                 return ScanInstances(found.points, found.labels)
-            return ScanInstances(*load_centroid_scan(path, classes))
+            return ScanInstances(*read_centroid_scan(path, classes))
         scan = self.scan(index)
         found = cluster_instances(scan.points, scan.labels)
         return ScanInstances(found.points, found.labels)
@@ -176,7 +179,7 @@ def _check_scan_file(path: Path) -> None:
         )
 
 
-def load_centroid_scan(
+def read_centroid_scan(
     path: str | os.PathLike, classes: Sequence[int] = GRAPH_CLASSES
 ) -> tuple[np.ndarray, np.ndarray]:
     """Read an instance-centroid scan file: lines ``class_id x y z`` (scan frame, metres; ``#``
@@ -243,7 +246,7 @@ def open_lidar_recording(
     Raises:
         FileNotFoundError, ValueError: naming the file: a missing scan, folder or label file, an
             unknown scan format, a HeLiPR scan not named by its stamp, any error of
-            :func:`~jaxloc.io.load_lidar_sequence` or of the pose file.
+            :func:`~jaxloc.io.lidar_sequence.open_lidar_sequence` or of the pose file.
     """
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
@@ -260,7 +263,7 @@ def open_lidar_recording(
             poses.append(None)
             sources.append(-1)
             continue
-        sequence = load_lidar_sequence(item, False, layout, sensor)
+        sequence = open_lidar_sequence(item, False, layout, sensor)
         for index in range(0, len(sequence.bins), every):
             scans.append(sequence.bins[index])
             numbers.append(index)
@@ -325,3 +328,12 @@ def write_lidar_poses(
     )
     write_tum(path, poses[valid], stamps[valid])
     return int((~valid).sum())
+
+
+#: Names of jaxloc 0.2, kept with a DeprecationWarning for one more release.
+__getattr__ = renamed_names(
+    __name__,
+    {
+        "load_centroid_scan": "read_centroid_scan",
+    },
+)

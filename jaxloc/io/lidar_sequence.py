@@ -39,13 +39,14 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxloc._lazy import renamed_names
 from jaxloc.io import helipr
 from jaxloc.io._numbering import check_distinct_numbers
 from jaxloc.io._text import data_lines, parse_finite_floats
 from jaxloc.io.poses import PoseFile, check_rigid, match_timestamps, read_pose_file, seconds_to_ns
-from jaxloc.io.semantickitti import LabelledScan, load_semantickitti_scan
+from jaxloc.io.semantickitti import LabelledScan, read_semantickitti_scan
 
-#: The layouts :func:`load_lidar_sequence` reads.
+#: The layouts :func:`open_lidar_sequence` reads.
 LAYOUTS = ("semantickitti", "plain", "helipr")
 
 
@@ -110,7 +111,7 @@ def is_sequence_dir(path: str | os.PathLike) -> bool:
     """Whether ``path`` is a folder of scans in a sequence layout: ``velodyne/*.bin``
     (SemanticKITTI, plain) or ``LiDAR/<sensor>/*.bin`` (HeLiPR). A folder of loose ``*.bin``
     files is a plain sequence too, but is not recognised here (force it with
-    ``load_lidar_sequence(..., layout="plain")``)."""
+    ``open_lidar_sequence(..., layout="plain")``)."""
     layout = detect_layout(path)
     return layout in ("semantickitti", "helipr") or (
         layout == "plain" and (Path(path) / "velodyne").is_dir()
@@ -318,7 +319,7 @@ def _helipr_sequence(root: Path, sensor: str | None, require_poses: bool) -> Lid
     return sequence
 
 
-def load_lidar_sequence(
+def open_lidar_sequence(
     seq_dir: str | os.PathLike,
     require_poses: bool = True,
     layout: str | None = None,
@@ -354,7 +355,7 @@ def load_lidar_sequence(
     return _kitti_sequence(root, layout, require_poses)
 
 
-def load_sequence_scan(sequence: LidarSequence, index: int) -> LabelledScan:
+def read_sequence_scan(sequence: LidarSequence, index: int) -> LabelledScan:
     """Scan ``index`` of ``sequence`` as a :class:`LabelledScan` (class ids), whatever the layout:
     SemanticKITTI records and raw ids, or a HeLiPR sensor's records and SPVNAS ids.
 
@@ -363,13 +364,23 @@ def load_sequence_scan(sequence: LidarSequence, index: int) -> LabelledScan:
         ValueError: a malformed scan or label file (naming it).
     """
     if sequence.point_format == "kitti" and sequence.label_ids == "semantickitti":
-        return load_semantickitti_scan(sequence.bins[index], sequence.labels[index])
+        return read_semantickitti_scan(sequence.bins[index], sequence.labels[index])
     if sequence.label_ids != "spvnas" or sequence.point_format == "kitti":
         raise ValueError(
             f"{sequence.root}: unsupported scan format {sequence.point_format!r} with "
             f"{sequence.label_ids!r} labels"
         )
     stamp = None if sequence.timestamps is None else int(sequence.timestamps[index])
-    return helipr.load_helipr_scan(
+    return helipr.read_helipr_scan(
         sequence.bins[index], sequence.labels[index], sequence.point_format, stamp
     )
+
+
+#: Names of jaxloc 0.2, kept with a DeprecationWarning for one more release.
+__getattr__ = renamed_names(
+    __name__,
+    {
+        "load_sequence_scan": "read_sequence_scan",
+        "load_lidar_sequence": "open_lidar_sequence",
+    },
+)

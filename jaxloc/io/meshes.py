@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from jaxloc._lazy import renamed_names
 from jaxloc.io._faces import check_face_indices
 from jaxloc.io._text import data_lines, parse_finite_floats
 from jaxloc.scene import Capacity, SceneGraph
@@ -36,7 +37,7 @@ from jaxloc.scene import Capacity, SceneGraph
 PathLike = str | os.PathLike
 
 
-def load_objects_file(path: PathLike) -> tuple[list[str], np.ndarray, np.ndarray]:
+def read_objects_file(path: PathLike) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Parse an objects file (see the module docstring).
 
     Returns:
@@ -104,7 +105,7 @@ def _as_vertex_colors(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return mesh
 
 
-def load_meshes(mesh_path: PathLike | Sequence[PathLike]) -> dict[str, trimesh.Trimesh]:
+def read_meshes(mesh_path: PathLike | Sequence[PathLike]) -> dict[str, trimesh.Trimesh]:
     """Named world-frame meshes from one mesh/scene file or a list of per-object mesh files.
 
     Returns an insertion-ordered dict name -> mesh (see the module docstring for naming).
@@ -178,7 +179,7 @@ def _is_single_mesh_format(path: Path) -> bool:
     return path.suffix.lower() in {".ply", ".stl", ".off"}
 
 
-def load_scene_from_files(
+def read_mesh_scene(
     mesh_path: PathLike | Sequence[PathLike],
     objects_path: PathLike,
     *,
@@ -203,8 +204,8 @@ def load_scene_from_files(
             :meth:`SceneGraph.from_meshes` (NaN vertices, degenerate meshes, zero embeddings...).
         FileNotFoundError: a file does not exist.
     """
-    names, labels, embeddings = load_objects_file(objects_path)
-    meshes = load_meshes(mesh_path)
+    names, labels, embeddings = read_objects_file(objects_path)
+    meshes = read_meshes(mesh_path)
     missing = [n for n in names if n not in meshes]
     extra = [n for n in meshes if n not in set(names)]
     if missing or extra:
@@ -226,3 +227,14 @@ def load_scene_from_files(
             index = int(message.split()[1].rstrip(":"))
             message = f"object {index} ({names[index]!r}): " + message.split(":", 1)[1].strip()
         raise ValueError(message) from err
+
+
+#: Names of jaxloc 0.2, kept with a DeprecationWarning for one more release.
+__getattr__ = renamed_names(
+    __name__,
+    {
+        "load_meshes": "read_meshes",
+        "load_objects_file": "read_objects_file",
+        "load_scene_from_files": "read_mesh_scene",
+    },
+)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxloc._lazy import renamed_names
 from jaxloc.io._text import data_lines
 from jaxloc.io.reconstruction import (
     LabelledReconstruction,
@@ -25,7 +26,7 @@ from jaxloc.io.reconstruction import (
 INSTANCE_PROPERTIES = ("objectId", "instance", "instance_id")
 
 
-def read_generic(
+def read_labelled_ply(
     ply_path: PathLike, objects_path: PathLike, instance_property: str | None = None
 ) -> LabelledReconstruction:
     """A PLY mesh or point cloud with a per-vertex instance id, and an objects file.
@@ -70,3 +71,12 @@ def read_generic(
     return LabelledReconstruction(
         vertices, colors, faces, vertex_object, tuple(objects), objects_path
     )
+
+
+#: Names of jaxloc 0.2, kept with a DeprecationWarning for one more release.
+__getattr__ = renamed_names(
+    __name__,
+    {
+        "read_generic": "read_labelled_ply",
+    },
+)

@@ -4,7 +4,7 @@ A :class:`LabelledReconstruction` holds the reconstruction's vertices (and faces
 their colours, and an object id per vertex with each object's class id and label.
 :func:`jaxloc.mapping.scene_graph_from_reconstruction` turns it into a map. The readers:
 :func:`jaxloc.io.scannet.read_scannet` (ScanNet v2), :func:`jaxloc.io.rscan.read_3rscan` (3RScan)
-and :func:`jaxloc.io.ply.read_generic` (any labelled PLY). The world frame is the
+and :func:`jaxloc.io.ply.read_labelled_ply` (any labelled PLY). The world frame is the
 reconstruction's (metres, z up, as in both datasets). Every problem raises ``FileNotFoundError`` or
 ``ValueError`` naming the file.
 """

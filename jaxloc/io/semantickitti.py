@@ -11,6 +11,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxloc._lazy import renamed_names
+
 # SemanticKITTI raw id -> learning id (semantic-kitti.yaml), 0 = unlabeled.
 _LEARNING_MAP = {
     0: 0, 1: 0, 10: 1, 11: 2, 13: 5, 15: 3, 16: 5, 18: 4, 20: 5, 30: 6, 31: 7, 32: 8,
@@ -36,7 +38,7 @@ class LabelledScan(NamedTuple):
     instance_ids: np.ndarray
 
 
-def load_semantickitti_scan(bin_path: str | Path, label_path: str | Path) -> LabelledScan:
+def read_semantickitti_scan(bin_path: str | Path, label_path: str | Path) -> LabelledScan:
     """Read a SemanticKITTI scan: ``.bin`` float32 (x, y, z, intensity), ``.label`` uint32.
 
     Raises:
@@ -55,3 +57,12 @@ def load_semantickitti_scan(bin_path: str | Path, label_path: str | Path) -> Lab
         raise ValueError(f"{bin_path}: non-finite point coordinates")
     labels = semantickitti_class_ids(label_words & 0xFFFF)
     return LabelledScan(points, labels, (label_words >> 16).astype(np.int32))
+
+
+#: Names of jaxloc 0.2, kept with a DeprecationWarning for one more release.
+__getattr__ = renamed_names(
+    __name__,
+    {
+        "load_semantickitti_scan": "read_semantickitti_scan",
+    },
+)

@@ -26,66 +26,15 @@ Modules (private; everything public is re-exported here): ``_clusters`` (instanc
 ``_evaluation`` (errors and success rates), ``_classes`` and ``_road_normals`` (shared types).
 """
 
-from jaxloc.m2loc._accumulation import (
-    MERGE_RADIUS,
-    WINDOW_MIN_CLIQUE,
-    WINDOW_MIN_INSTANCES,
-    FusedScans,
-    fuse_scans,
-    grow_window,
-    localize_window,
-    require_clique,
-)
+from jaxloc._lazy import deprecated_names
+from jaxloc.m2loc._accumulation import FusedScans, fuse_scans, localize_window
 from jaxloc.m2loc._batch import localize_scans
-from jaxloc.m2loc._classes import GRAPH_CLASSES, POLE, TRAFFIC_SIGN, TRUNK
-from jaxloc.m2loc._clique import (
-    greedy_cliques,
-    max_clique,
-    max_clique_exact,
-    max_clique_with_info,
-    unpack_ranked,
-)
-from jaxloc.m2loc._clusters import (
-    ClusterConfig,
-    Instances,
-    cluster_instances,
-    euclidean_clusters,
-    fuse_instances,
-    voxel_downsample,
-)
+from jaxloc.m2loc._clique import max_clique
+from jaxloc.m2loc._clusters import ClusterConfig, Instances, cluster_instances
 from jaxloc.m2loc._config import TripletConfig, m2loc_config, tripletloc_config
-from jaxloc.m2loc._descriptors import (
-    DescriptorConfig,
-    class_positions,
-    describe_map,
-    describe_points,
-    vertex_descriptor,
-)
-from jaxloc.m2loc._drive import (
-    STATUS_NAMES,
-    DriveConfig,
-    DriveResult,
-    DriveStep,
-    ScanInstances,
-    ScanSource,
-    drive_window,
-    localize_drive,
-)
-from jaxloc.m2loc._evaluation import (
-    SUCCESS_RRE_DEG,
-    SUCCESS_RTE_M,
-    localization_errors,
-    summarize_localization,
-)
-from jaxloc.m2loc._hypotheses import (
-    MapGrid,
-    best_verified_clique,
-    closed_form_poses,
-    grid_verified_fraction,
-    host_map_grid,
-    map_grid,
-    verified_hypotheses,
-)
+from jaxloc.m2loc._descriptors import DescriptorConfig, describe_points
+from jaxloc.m2loc._drive import DriveConfig, DriveResult, localize_drive
+from jaxloc.m2loc._evaluation import localization_errors, summarize_localization
 from jaxloc.m2loc._localization import (
     LocalizationResult,
     PaddedScan,
@@ -93,117 +42,146 @@ from jaxloc.m2loc._localization import (
     pad_scan,
     prepare_queries,
     query,
-    query_capacity,
 )
-from jaxloc.m2loc._map import (
-    SmallMapWarning,
-    TripletMap,
-    build_map,
-    fit_config_to_map,
-    triplet_map_spec,
-    with_config,
-)
-from jaxloc.m2loc._matching import consistency_graph, match_descriptors
-from jaxloc.m2loc._query import QueryOutput, describe_query, register_query, verified_fraction
-from jaxloc.m2loc._registration import point_residuals, register, up_axis_prior, weighted_kabsch
+from jaxloc.m2loc._map import SmallMapWarning, TripletMap, build_map, with_config
+from jaxloc.m2loc._matching import match_descriptors
+from jaxloc.m2loc._registration import register
 from jaxloc.m2loc._road_normals import RoadNormals
-from jaxloc.m2loc._tracking import (
-    LOST,
-    PENDING,
-    RELOCALIZED,
-    TRACKED,
-    TrackConfig,
-    Tracker,
-    TrackResult,
-    TrackState,
-    grid_nearest_same_class,
-    track_step,
-)
+from jaxloc.m2loc._tracking import TrackConfig, Tracker, TrackStatus
 
 __all__ = [
-    "GRAPH_CLASSES",
-    "LOST",
-    "MERGE_RADIUS",
-    "PENDING",
-    "POLE",
-    "RELOCALIZED",
-    "STATUS_NAMES",
-    "SUCCESS_RRE_DEG",
-    "SUCCESS_RTE_M",
-    "TRACKED",
-    "TRAFFIC_SIGN",
-    "TRUNK",
-    "WINDOW_MIN_CLIQUE",
-    "WINDOW_MIN_INSTANCES",
     "ClusterConfig",
     "DescriptorConfig",
     "DriveConfig",
     "DriveResult",
-    "DriveStep",
     "FusedScans",
     "Instances",
     "LocalizationResult",
-    "MapGrid",
-    "QueryOutput",
-    "RoadNormals",
-    "ScanInstances",
-    "ScanSource",
     "PaddedScan",
+    "RoadNormals",
     "SmallMapWarning",
     "TrackConfig",
-    "TrackResult",
-    "TrackState",
+    "TrackStatus",
     "Tracker",
     "TripletConfig",
     "TripletMap",
-    "best_verified_clique",
     "build_map",
-    "class_positions",
-    "closed_form_poses",
     "cluster_instances",
-    "consistency_graph",
-    "describe_map",
     "describe_points",
-    "describe_query",
-    "drive_window",
-    "euclidean_clusters",
-    "fit_config_to_map",
-    "fuse_instances",
     "fuse_scans",
-    "grow_window",
-    "greedy_cliques",
-    "grid_nearest_same_class",
-    "grid_verified_fraction",
-    "host_map_grid",
     "localization_errors",
     "localize_drive",
     "localize_scan",
     "localize_scans",
     "localize_window",
     "m2loc_config",
-    "map_grid",
     "match_descriptors",
+    "max_clique",
     "pad_scan",
     "prepare_queries",
-    "max_clique",
-    "max_clique_exact",
-    "max_clique_with_info",
-    "point_residuals",
     "query",
-    "query_capacity",
     "register",
-    "register_query",
-    "require_clique",
     "summarize_localization",
-    "track_step",
-    "triplet_map_spec",
     "tripletloc_config",
-    "unpack_ranked",
-    "up_axis_prior",
-    "verified_fraction",
-    "verified_hypotheses",
-    "vertex_descriptor",
-    "voxel_downsample",
-    "weighted_kabsch",
     "with_config",
 ]
+
+#: Names public in jaxloc 0.2 and internal now, or replaced: they still resolve, with a
+#: DeprecationWarning, for one more release.
+__getattr__ = deprecated_names(
+    __name__,
+    {
+        "jaxloc.m2loc._accumulation": (
+            "MERGE_RADIUS",
+            "WINDOW_MIN_CLIQUE",
+            "WINDOW_MIN_INSTANCES",
+            "grow_window",
+            "require_clique",
+        ),
+        "jaxloc.m2loc._classes": (
+            "GRAPH_CLASSES",
+            "POLE",
+            "TRAFFIC_SIGN",
+            "TRUNK",
+        ),
+        "jaxloc.m2loc._clique": (
+            "greedy_cliques",
+            "max_clique_exact",
+            "max_clique_with_info",
+            "unpack_ranked",
+        ),
+        "jaxloc.m2loc._clusters": (
+            "euclidean_clusters",
+            "fuse_instances",
+            "voxel_downsample",
+        ),
+        "jaxloc.m2loc._descriptors": (
+            "class_positions",
+            "describe_map",
+            "vertex_descriptor",
+        ),
+        "jaxloc.m2loc._drive": (
+            "STATUS_NAMES",
+            "DriveStep",
+            "ScanInstances",
+            "ScanSource",
+            "drive_window",
+        ),
+        "jaxloc.m2loc._evaluation": (
+            "SUCCESS_RRE_DEG",
+            "SUCCESS_RTE_M",
+        ),
+        "jaxloc.m2loc._hypotheses": (
+            "MapGrid",
+            "best_verified_clique",
+            "closed_form_poses",
+            "grid_verified_fraction",
+            "host_map_grid",
+            "map_grid",
+            "verified_hypotheses",
+        ),
+        "jaxloc.m2loc._localization": ("query_capacity",),
+        "jaxloc.m2loc._map": (
+            "fit_config_to_map",
+            "triplet_map_spec",
+        ),
+        "jaxloc.m2loc._matching": ("consistency_graph",),
+        "jaxloc.m2loc._query": (
+            "QueryOutput",
+            "describe_query",
+            "register_query",
+            "verified_fraction",
+        ),
+        "jaxloc.m2loc._registration": (
+            "point_residuals",
+            "up_axis_prior",
+            "weighted_kabsch",
+        ),
+        "jaxloc.m2loc._tracking": (
+            "LOST",
+            "PENDING",
+            "RELOCALIZED",
+            "TRACKED",
+            "TrackResult",
+            "TrackState",
+            "grid_nearest_same_class",
+            "track_step",
+        ),
+    },
+    {
+        "STATUS_NAMES": "jaxloc.m2loc.TrackStatus(status).name",
+        "LOST": "jaxloc.m2loc.TrackStatus.LOST",
+        "PENDING": "jaxloc.m2loc.TrackStatus.PENDING",
+        "RELOCALIZED": "jaxloc.m2loc.TrackStatus.RELOCALIZED",
+        "TRACKED": "jaxloc.m2loc.TrackStatus.TRACKED",
+        "track_step": "jaxloc.m2loc.Tracker",
+        "TrackState": "jaxloc.m2loc.Tracker",
+        "describe_map": "jaxloc.m2loc.build_map",
+        "fit_config_to_map": "jaxloc.m2loc.build_map",
+        "max_clique_exact": "jaxloc.m2loc.max_clique",
+        "max_clique_with_info": "jaxloc.m2loc.max_clique",
+        "describe_query": "jaxloc.m2loc.query",
+        "register_query": "jaxloc.m2loc.query",
+        "drive_window": "jaxloc.m2loc.localize_drive",
+    },
+)

@@ -54,7 +54,7 @@ class TripletConfig(eqx.Module):
             verifies below ``retry_inlier_fraction``: greedy cliques grown from every
             association of the final graph, the largest distinct ones, each with a closed-form
             pose; the best-verified one is refined and kept if it verifies better
-            (:func:`jaxloc.m2loc.best_verified_clique`).
+            (``best_verified_clique``).
         hypothesis_min_support: a pose from the hypotheses is kept only if it verifies at least
             this many scan vertices beyond those counted out by ``verify_beyond_minimal_set``
             (the best of many poses fits a small scan by chance far more often than one pose).
@@ -63,7 +63,7 @@ class TripletConfig(eqx.Module):
             of foreign scans that reached 0.5 stayed below 0.55, against 3 of 70 right poses of
             DCC04 queries; ``experiments/results/m2loc/searched_poses.md``).
         ambiguity_margin: None (default) or the uniqueness check: the ``hypotheses`` of the
-            final graph are verified (:func:`jaxloc.m2loc.verified_hypotheses`, every query),
+            final graph are verified (``verified_hypotheses``, every query),
             and the pose is refused as ambiguous when one that moves the scan elsewhere (its
             vertices by more than ``ambiguity_distance`` on average) verifies at least the
             pose's own fraction minus this margin: a repetitive road explained equally well

@@ -1,5 +1,5 @@
 """A drive in one call: every scan of a recording localized, alone, through the fused window of
-the last scans (:func:`~jaxloc.m2loc.grow_window`) or tracked (:class:`~jaxloc.m2loc.Tracker`).
+the last scans (``grow_window``) or tracked (:class:`~jaxloc.m2loc.Tracker`).
 
 :func:`localize_drive` walks the scans oldest first. Scan ``i`` is localized as its query: the
 scan itself, or with ``accumulate = K > 1`` the fusion of its last K scans through the odometry
@@ -7,7 +7,7 @@ scan itself, or with ``accumulate = K > 1`` the fusion of its last K scans throu
 fewer than ``DriveConfig.min_instances`` instances; a window of one scan, at the start of a
 drive, is the scan). Without tracking each query is localized globally
 (:func:`~jaxloc.m2loc.localize_scan`), a fused window's pose refused on a clique below
-``DriveConfig.min_clique`` (:func:`~jaxloc.m2loc.require_clique`); with ``track=True`` the queries
+``DriveConfig.min_clique`` (``require_clique``); with ``track=True`` the queries
 are stepped through a :class:`~jaxloc.m2loc.Tracker` with the odometry between consecutive scans.
 
 Host-side: scans are read one at a time from the source (a recording of
@@ -43,10 +43,10 @@ from jaxloc.m2loc._localization import (
     query_capacity,
 )
 from jaxloc.m2loc._map import TripletMap, with_config
-from jaxloc.m2loc._tracking import LOST, RELOCALIZED, TrackConfig, Tracker, track_step
+from jaxloc.m2loc._tracking import LOST, RELOCALIZED, TrackConfig, Tracker, TrackStatus, track_step
 
 #: The name of each :attr:`DriveResult.status` value (``STATUS_NAMES[TRACKED] == "tracked"``).
-STATUS_NAMES = ("tracked", "relocalized", "lost", "pending")
+STATUS_NAMES = tuple(status.name.lower() for status in TrackStatus)
 
 
 class ScanInstances(NamedTuple):
@@ -83,9 +83,9 @@ class DriveConfig(eqx.Module):
     Attributes:
         most_scans: the most scans a window of ``accumulate = K`` grows to (None: 2K).
         min_instances: a window grows with older scans while its fusion holds fewer instances
-            (:data:`~jaxloc.m2loc.WINDOW_MIN_INSTANCES`; 0: exactly K scans).
+            (``WINDOW_MIN_INSTANCES``; 0: exactly K scans).
         min_clique: the smallest clique a fused window's global pose may rest on
-            (:data:`~jaxloc.m2loc.WINDOW_MIN_CLIQUE`; single scans keep the map's
+            (``WINDOW_MIN_CLIQUE``; single scans keep the map's
             ``min_inliers``; not used when tracking).
         merge_radius: metres; instances of one class this close after odometry are one object.
         track: the :class:`~jaxloc.m2loc.TrackConfig` of ``track=True``.
@@ -114,9 +114,9 @@ class DriveStep(NamedTuple):
         result: the :class:`~jaxloc.m2loc.LocalizationResult` of the scan's query (its ``pose``
             the scan's ``T_map_scan``). Tracking: ``clique_size`` and ``num_associations`` are the
             local associations (0 for a global step), ``match_time_ms`` the whole step.
-        status: :data:`~jaxloc.m2loc.TRACKED`, ``RELOCALIZED`` (a global pose; without tracking
-            every valid pose), ``LOST`` (no pose) or ``PENDING`` (tracking: a global pose awaiting
-            the next scan's confirmation, not valid).
+        status: a :class:`~jaxloc.m2loc.TrackStatus`: ``TRACKED``, ``RELOCALIZED`` (a global
+            pose; without tracking every valid pose), ``LOST`` (no pose) or ``PENDING`` (tracking:
+            a global pose awaiting the next scan's confirmation, not valid).
         instances: the scan's own instance centroids.
         fused: the fused window localized instead (None: the scan alone).
         small_clique: a fused window's valid pose was refused for resting on a clique below
@@ -141,8 +141,8 @@ class DriveResult(NamedTuple):
     Attributes:
         poses: (N, 4, 4) float64 ``T_map_scan`` (identity where not valid).
         valid: (N,) bool.
-        status: (N,) int32 :data:`~jaxloc.m2loc.TRACKED`, ``RELOCALIZED``, ``LOST`` or
-            ``PENDING`` (names: :data:`STATUS_NAMES`).
+        status: (N,) int32 :class:`~jaxloc.m2loc.TrackStatus` values (``TRACKED``,
+            ``RELOCALIZED``, ``LOST`` or ``PENDING``; ``TrackStatus(s).name``).
         fused_scans: (N,) int64 scans fused into each query (1: the scan alone).
         load_ms: (N,) float64 read time; localize_ms: (N,) float64 descriptor + match (or
             tracking step) time; compile_s: (N,) float64 compile or load time.

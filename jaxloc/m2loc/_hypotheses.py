@@ -100,7 +100,7 @@ def grid_verified_fraction(
     discount: int,
     bucket: int = 16,
 ) -> Array:
-    """:func:`jaxloc.m2loc.verified_fraction` through a :class:`MapGrid` (cell >= radius):
+    """``verified_fraction`` through a :class:`MapGrid` (cell >= radius):
     each moved scan vertex is tested against the first ``bucket`` vertices of the 3 x 3 cells
     around it, not the whole map. Equal to the brute force unless a cell holds more than
     ``bucket`` vertices, where it can only count fewer (a stricter check, never a laxer one).
@@ -133,7 +133,7 @@ def closed_form_poses(masks: Array, query_xyz: Array, map_xyz: Array) -> Array:
 
     The per-subset sums (counts, means, cross moments) are one (N, A) x (A, 15) product, so N
     subsets cost one pass over the associations, not N (as N calls of
-    :func:`jaxloc.m2loc.weighted_kabsch` would: 11 ms for 256 subsets of 2400 associations on
+    ``weighted_kabsch`` would: 11 ms for 256 subsets of 2400 associations on
     DCC04, ~1 ms this way). Subsets of fewer than 3 associations give the identity.
 
     Args:

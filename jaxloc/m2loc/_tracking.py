@@ -8,14 +8,14 @@ padded to one capacity (:func:`~jaxloc.m2loc.pad_scan`). One step:
 1. Predict ``T_map_scan = T_map_prev @ T_prev_scan`` (the odometry from the previous scan).
 2. While the track is held (a verified pose at most ``max_coast`` scans ago), associate every
    scan instance with the nearest map instance of its class within ``association_radius`` of its
-   predicted position (through the map's :class:`~jaxloc.m2loc.MapGrid`: the cells around it,
+   predicted position (through the map's ``MapGrid``: the cells around it,
    not the whole map), solve the pose from the prediction with the robust least squares of the
    global query (:func:`jaxloc.lsq.solve_pose`, ``TrackConfig.loss``) and the road-normal
    prior, associate again within ``verify_radius`` and solve again. The pose is verified exactly
    as a global one (``min_inlier_fraction``, ``min_verified``, the minimal-set discount of
    :class:`~jaxloc.m2loc.TripletConfig`).
 3. A pose that fails, or a step without a confirmed track, runs the global query
-   (:func:`~jaxloc.m2loc.register_query`) under ``lax.cond``: only that branch runs. A global
+   (``register_query``) under ``lax.cond``: only that branch runs. A global
    pose that verifies is reported (``RELOCALIZED``) only when it agrees with the odometry
    prediction of the track or of the previous scan's global pose (within
    ``association_radius`` and ``confirm_angle_deg``): a lone global pose is ``PENDING`` (not
@@ -30,6 +30,7 @@ The step compiles once per scan capacity (the global query included): no retrace
 
 from __future__ import annotations
 
+import enum
 import math
 
 import equinox as eqx
@@ -48,15 +49,22 @@ from jaxloc.m2loc._map import TripletMap, verification_grid
 from jaxloc.m2loc._query import MINIMAL_SET, register_query
 from jaxloc.m2loc._registration import point_residuals, up_axis_prior
 
-#: :attr:`TrackResult.mode`: the pose came from the local association near the prediction.
-TRACKED = 0
-#: :attr:`TrackResult.mode`: the pose came from global localization (first fix or a lost track).
-RELOCALIZED = 1
-#: :attr:`TrackResult.mode`: no pose verified; ``valid`` is False.
-LOST = 2
-#: :attr:`TrackResult.mode`: a global pose verified but awaits the next scan's confirmation;
-#: ``valid`` is False.
-PENDING = 3
+
+class TrackStatus(enum.IntEnum):
+    """Where a tracked scan's pose came from: :attr:`TrackResult.mode` and
+    :attr:`DriveResult.status` hold these values (int32 arrays compare with them)."""
+
+    #: From the local association near the odometry prediction.
+    TRACKED = 0
+    #: From global localization (the first fix, or a lost track).
+    RELOCALIZED = 1
+    #: No pose verified; ``valid`` is False.
+    LOST = 2
+    #: A global pose verified that awaits the next scan's confirmation; ``valid`` is False.
+    PENDING = 3
+
+
+TRACKED, RELOCALIZED, LOST, PENDING = (int(status) for status in TrackStatus)
 
 
 class TrackConfig(eqx.Module):
@@ -143,7 +151,7 @@ def grid_nearest_same_class(
     bucket: int = 16,
 ) -> tuple[Array, Array]:
     """Nearest map vertex of the same class within ``radius`` for every scan vertex, through a
-    :class:`~jaxloc.m2loc.MapGrid`: the first ``bucket`` vertices of each cell within
+    ``MapGrid``: the first ``bucket`` vertices of each cell within
     ``ceil(reach / cell)`` cells of the vertex's own are searched, not the whole map. Equal to the
     brute force for ``radius <= reach`` unless a cell holds more than ``bucket`` vertices (then it
     can only find fewer).
@@ -151,7 +159,7 @@ def grid_nearest_same_class(
     Args:
         moved: (Nq, 3) scan vertices in the map frame (minus the map's origin); classes: (Nq,)
             int32 class positions; mask: (Nq,) bool real vertices.
-        grid: from :func:`~jaxloc.m2loc.map_grid`; radius: metres (traced).
+        grid: from ``map_grid``; radius: metres (traced).
         reach: metres (static), the search's extent: a bound of ``radius`` (None: ``radius``,
             then a Python float).
         bucket: static vertices read per cell.

@@ -13,20 +13,7 @@ from typing import TYPE_CHECKING
 
 from jaxloc._lazy import lazy_exports
 
-#: Public name -> the submodule that defines it (imported on first use: importing the package
-#: costs only what is used).
-_EXPORTS = {
-    "LidarMaps": "lidar_maps",
-    "MapBuildConfig": "lidar_maps",
-    "build_lidar_maps": "lidar_maps",
-    "fit_plane": "lidar_maps",
-    "DEFAULT_TARGET_VERTICES": "scene_graphs",
-    "class_embeddings": "scene_graphs",
-    "decimate": "scene_graphs",
-    "onehot_classes": "scene_graphs",
-    "scene_graph_from_reconstruction": "scene_graphs",
-}
-__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, __file__)
 
 if TYPE_CHECKING:  # the lazy names, for type checkers and the API reference
     from jaxloc.mapping.lidar_maps import LidarMaps, MapBuildConfig, build_lidar_maps, fit_plane

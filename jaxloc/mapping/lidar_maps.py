@@ -24,16 +24,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxloc.io.lidar_sequence import LidarSequence, load_sequence_scan
-from jaxloc.m2loc import (
-    ClusterConfig,
-    Instances,
-    RoadNormals,
-    cluster_instances,
-    euclidean_clusters,
-    fuse_instances,
-    voxel_downsample,
-)
+from jaxloc.io.lidar_sequence import LidarSequence, read_sequence_scan
+from jaxloc.m2loc import ClusterConfig, Instances, RoadNormals, cluster_instances
+from jaxloc.m2loc._clusters import euclidean_clusters, fuse_instances, voxel_downsample
 
 #: SemanticKITTI's road class (raw id 40, learning id 9) in TripletLoc's numbering (SPVNAS's 8).
 ROAD = 8
@@ -157,8 +150,8 @@ def build_lidar_maps(
     """Instance map and RSN map of a labelled sequence (see the module docstring).
 
     Args:
-        sequence: scans and their ``T_map_scan`` poses (:func:`~jaxloc.io.load_lidar_sequence`;
-            any layout: each scan is read by :func:`jaxloc.io.load_sequence_scan`).
+        sequence: scans and their ``T_map_scan`` poses (:func:`~jaxloc.io.lidar_sequence.open_lidar_sequence`;
+            any layout: each scan is read by :func:`jaxloc.io.lidar_sequence.read_sequence_scan`).
         config: build parameters.
         progress: called with 1 after each scan read (e.g. a tqdm bar's ``update``).
 
@@ -174,7 +167,7 @@ def build_lidar_maps(
     used = np.arange(0, len(sequence.bins), config.every)
     centroids, labels, sizes, cell_xy, cell_normals = [], [], [], [], []
     for index in used:
-        scan = load_sequence_scan(sequence, int(index))
+        scan = read_sequence_scan(sequence, int(index))
         pose = sequence.T_map_scan[index]
         found = cluster_instances(scan.points, scan.labels, config.clusters)
         centroids.append(found.points @ pose[:3, :3].T + pose[:3, 3])

@@ -90,7 +90,7 @@ def scene_graph_from_reconstruction(
 
     Args:
         recon: from :func:`~jaxloc.io.scannet.read_scannet`, ``read_3rscan`` or
-            ``read_generic``.
+            ``read_labelled_ply``.
         embeddings: object embeddings; None for the one-hot-per-class fallback.
         target_vertices: vertices per object after decimation (about).
 

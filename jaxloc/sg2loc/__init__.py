@@ -23,30 +23,7 @@ from typing import TYPE_CHECKING
 
 from jaxloc._lazy import lazy_exports
 
-#: Public name -> the submodule that defines it (imported on first use: importing the package
-#: costs only what is used).
-_EXPORTS = {
-    "filter": "",
-    "learn": "",
-    "online": "",
-    "particles": "",
-    "refine": "",
-    "resampling": "",
-    "retrieval": "",
-    "scores": "",
-    "sharded": "",
-    "verdict": "",
-    "SG2LocConfig": "localization",
-    "SG2LocResult": "localization",
-    "carry_back": "localization",
-    "localize": "localization",
-    "warm_up": "localization",
-    "Render": "rendering",
-    "render": "rendering",
-    "render_batch": "rendering",
-    "Sequence": "sequence",
-}
-__getattr__, __dir__ = lazy_exports(__name__, _EXPORTS)
+__getattr__, __dir__ = lazy_exports(__name__, __file__)
 
 if TYPE_CHECKING:  # the lazy names, for type checkers and the API reference
     from jaxloc.sg2loc import (

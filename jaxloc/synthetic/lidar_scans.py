@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxloc.m2loc import POLE, TRAFFIC_SIGN, TRUNK
+from jaxloc.m2loc._classes import POLE, TRAFFIC_SIGN, TRUNK
 from jaxloc.synthetic.outdoor import OutdoorWorld, _rot_z, _rotation_to, _terrain_height
 
 #: Raw SemanticKITTI ids of the synthetic scans.

@@ -19,7 +19,8 @@ from typing import Literal, NamedTuple
 
 import numpy as np
 
-from jaxloc.m2loc import GRAPH_CLASSES, POLE, TRAFFIC_SIGN, TRUNK, RoadNormals
+from jaxloc.m2loc import RoadNormals
+from jaxloc.m2loc._classes import GRAPH_CLASSES, POLE, TRAFFIC_SIGN, TRUNK
 
 
 class OutdoorWorld(NamedTuple):
