@@ -1,6 +1,7 @@
 """The recording options of the LiDAR commands (``--format``, ``--sensor``, ``--poses-out``, the
 drive's ``--accumulate`` family), their checks, and the notes and errors of reading: the reading
-itself is :func:`jaxloc.io.open_lidar_recording` and :func:`jaxloc.io.lidar_sequence.open_lidar_sequence`."""
+itself is :func:`jaxloc.io.open_lidar_recording` and
+:func:`jaxloc.io.lidar_sequence.open_lidar_sequence`."""
 
 from __future__ import annotations
 
@@ -136,7 +137,8 @@ def note_sequences(args: argparse.Namespace, sequences: Sequence) -> None:
 
 
 def open_sequence(path: Path, args: argparse.Namespace):
-    """:func:`jaxloc.io.lidar_sequence.open_lidar_sequence` with its poses, ``--format`` and ``--sensor``."""
+    """:func:`jaxloc.io.lidar_sequence.open_lidar_sequence` with its poses, ``--format`` and
+    ``--sensor``."""
     from jaxloc.io.lidar_sequence import open_lidar_sequence
 
     with reading():

@@ -1,10 +1,10 @@
 """A camera recording opened for SG2Loc in one call, and its estimated poses written for evo.
 
-:func:`open_camera_recording` is :func:`~jaxloc.io.camera_sequence.read_camera_sequence` with the recording's side
-files named as files: the map the recording is localized in (its object embeddings' dimension,
-and its class embeddings for label images), a label table mapping raw label ids to classes, and
-the transform of a 3RScan rescan into its reference scan's frame (``3RScan.json``, or a 4x4 matrix
-file). It returns a :class:`~jaxloc.io.CameraRecording`: the query
+:func:`open_camera_recording` is :func:`~jaxloc.io.camera_sequence.read_camera_sequence`
+with the recording's side files named as files: the map the recording is localized in (its
+object embeddings' dimension, and its class embeddings for label images), a label table mapping
+raw label ids to classes, and the transform of a 3RScan rescan into its reference scan's frame
+(``3RScan.json``, or a 4x4 matrix file). It returns a :class:`~jaxloc.io.CameraRecording`: the query
 :func:`jaxloc.sg2loc.localize` takes (``sequence``), the ground truth (``poses_gt``, ``tilt_gt``),
 the frames' numbers and timestamps. :func:`write_camera_poses` writes estimated poses in TUM or
 KITTI lines (:func:`camera_pose_matrices`: yaw poses with a tilt as 4x4 ``T_world_cam``).
@@ -89,8 +89,9 @@ def open_camera_recording(
 
     Raises:
         FileNotFoundError, ValueError: naming the file, as
-            :func:`~jaxloc.io.camera_sequence.read_camera_sequence`; both ``rescan_json`` and ``transform``; a
-            ``patch_shape`` below 1; label images without a ``map_file`` holding class embeddings.
+            :func:`~jaxloc.io.camera_sequence.read_camera_sequence`; both ``rescan_json`` and
+            ``transform``; a ``patch_shape`` below 1; label images without a ``map_file``
+            holding class embeddings.
     """
     if rescan_json is not None and transform is not None:
         raise ValueError("give rescan_json or transform, not both")

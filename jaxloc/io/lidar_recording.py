@@ -3,9 +3,9 @@ stamps and poses, each scan read on demand.
 
 :func:`open_lidar_recording` takes a path or a list of paths, each one of:
 
-* a sequence folder in any layout of :func:`~jaxloc.io.lidar_sequence.open_lidar_sequence` (SemanticKITTI,
-  plain, HeLiPR / TripletLoc; ``layout``, ``sensor``): every ``every``-th of its scans, with their
-  timestamps and poses when the folder has them;
+* a sequence folder in any layout of :func:`~jaxloc.io.lidar_sequence.open_lidar_sequence`
+  (SemanticKITTI, plain, HeLiPR / TripletLoc; ``layout``, ``sensor``): every ``every``-th of
+  its scans, with their timestamps and poses when the folder has them;
 * ``NAME.bin``, a SemanticKITTI scan with ``NAME.label`` beside it or in ``../labels/`` (the
   dataset's layout), or a HeLiPR ``SEQ/LiDAR/<sensor>/<stamp>.bin`` with ``SEQ/labels/`` (its
   stamp kept);

@@ -150,8 +150,9 @@ def build_lidar_maps(
     """Instance map and RSN map of a labelled sequence (see the module docstring).
 
     Args:
-        sequence: scans and their ``T_map_scan`` poses (:func:`~jaxloc.io.lidar_sequence.open_lidar_sequence`;
-            any layout: each scan is read by :func:`jaxloc.io.lidar_sequence.read_sequence_scan`).
+        sequence: scans and their ``T_map_scan`` poses
+            (:func:`~jaxloc.io.lidar_sequence.open_lidar_sequence`; any layout: each scan is read
+            by :func:`jaxloc.io.lidar_sequence.read_sequence_scan`).
         config: build parameters.
         progress: called with 1 after each scan read (e.g. a tqdm bar's ``update``).
 
