@@ -41,7 +41,7 @@ from raycast import build_room, random_poses, timed, world_rays  # noqa: E402
 
 import jaxloc  # noqa: E402
 from jaxloc.raycasting import _native, embree, engines
-from jaxloc.sg2loc.rendering import _tiles  # noqa: E402
+from jaxloc.sg2loc._rendering import _tiles  # noqa: E402
 
 
 def peak_rss_mib() -> float:

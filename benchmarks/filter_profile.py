@@ -39,11 +39,11 @@ from jaxloc import raycast, render_batch  # noqa: E402
 from jaxloc.camera import stride_grid  # noqa: E402
 from jaxloc.raycasting import hit_triangles
 from jaxloc.raycasting.engines import resolve_engine
-from jaxloc.sg2loc.filter import Region, StepConfig, frames_on_grid, step
-from jaxloc.sg2loc.particles import inject_uniform, mle, update_weights, weighted_mean
-from jaxloc.sg2loc.rendering import PACKET_SIZE
-from jaxloc.sg2loc.resampling import KLDConfig, kld_resample
-from jaxloc.sg2loc.scores import ObservationConfig, match_patches, particle_log_likelihood
+from jaxloc.sg2loc import KLDConfig, ObservationConfig, Region, StepConfig, frames_on_grid, step
+from jaxloc.sg2loc._particles import inject_uniform, mle, update_weights, weighted_mean
+from jaxloc.sg2loc._rendering import PACKET_SIZE
+from jaxloc.sg2loc._resampling import kld_resample
+from jaxloc.sg2loc._scores import match_patches, particle_log_likelihood
 
 
 def best_of(fn, repeats):

@@ -1,5 +1,5 @@
 """Seconds per frame and peak memory of one jitted SG2Loc filter step
-(:func:`jaxloc.sg2loc.filter.step`).
+(:func:`jaxloc.sg2loc.step`).
 
 The issue's benchmark: 2500 particles on 960x540 images of a synthetic room
 (:mod:`jaxloc.synthetic.indoor`, default room and sensor settings), for
@@ -18,7 +18,7 @@ through the frames, blocking on every result. Times are wall clock AND process C
 ``jax.devices()[0].memory_stats()['peak_bytes_in_use']``. Round 0 starts from the paper's floor
 initialisation; later rounds from the paper's boxes around the true first pose (half-widths 0.8
 and 0.4 m). Only the active particles are rendered, in chunks of ``--chunk`` particles (default:
-``jaxloc.sg2loc.filter.default_chunk_rays`` rays per chunk; ``--chunk 0`` renders every slot in
+``jaxloc.sg2loc._filter.default_chunk_rays`` rays per chunk; ``--chunk 0`` renders every slot in
 one call, the behaviour before chunking), with the nearest-hit engine ``--engine``. With
 ``--particles`` or the image size reduced, the table adds a column scaled linearly to the full
 size, labelled as an estimate.
@@ -118,13 +118,13 @@ def make_data(args: argparse.Namespace, folder: Path) -> dict:
 def load_data(folder: Path, width: int, height: int):
     import numpy as np
 
-    from jaxloc import Camera, Sequence
+    from jaxloc import Camera, FrameSequence
     from jaxloc.io.scene_map import load_scene
 
     with np.load(folder / "sequence.npz") as data:
         arrays = {key: data[key] for key in data.files}
     camera = Camera(*(float(v) for v in arrays["camera"]), width, height)
-    seq = Sequence(
+    seq = FrameSequence(
         camera,
         arrays["patch_embeddings"],
         arrays["ego_motion"],
@@ -161,7 +161,7 @@ def initial_state(key, particles: int, round_index: int, region, first_pose):
     pose (half-widths :data:`BOX_HALF_WIDTHS`)."""
     import jax.numpy as jnp
 
-    from jaxloc.sg2loc.particles import init_box, init_region
+    from jaxloc.sg2loc._particles import init_box, init_region
 
     if round_index == 0:
         return init_region(key, particles, region.lo, region.hi, region.floor_z)
@@ -176,9 +176,7 @@ def run_case(args: argparse.Namespace) -> dict:
     import numpy as np
 
     from jaxloc.camera import patch_grid, stride_grid
-    from jaxloc.sg2loc.filter import Region, StepConfig, frames_on_grid, step
-    from jaxloc.sg2loc.resampling import KLDConfig
-    from jaxloc.sg2loc.scores import ObservationConfig
+    from jaxloc.sg2loc import KLDConfig, ObservationConfig, Region, StepConfig, frames_on_grid, step
 
     scene, seq, poses_gt = load_data(Path(args.data), args.width, args.height)
     rows, cols = seq.patch_shape

@@ -7,7 +7,7 @@ set size, sampled from ``/proc/self/status`` along the run, stops growing after 
 * SG2Loc: one synthetic indoor episode (seed 1000, 160x90 images, d = 128 embeddings), a
   ``capacity``-particle filter on the 9x16 patch grid (one ray per patch), random-particle
   injection every 5th frame, run as ``lax.scan`` chunks of ``--chunk`` frames through one jitted
-  :func:`jaxloc.sg2loc.filter.run_pass` (the state is carried from chunk to chunk).
+  :func:`jaxloc.sg2loc.run_pass` (the state is carried from chunk to chunk).
 * M2Loc: ``--queries`` scan-like queries (``make_query``, at most 24 kept map vertices) of a
   synthetic dense outdoor world (seed 1000), each through
   :func:`jaxloc.m2loc.localize_scan` (TripletLoc configuration) with a fixed ``query_capacity``
@@ -34,10 +34,16 @@ import numpy as np
 from jaxloc.camera import patch_grid
 from jaxloc.geometry import ego_motion
 from jaxloc.m2loc import build_map, localization_errors, localize_scan, tripletloc_config
-from jaxloc.sg2loc.filter import Frame, Region, StepConfig, frames_on_grid, run_pass
-from jaxloc.sg2loc.particles import init_region
-from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.scores import ObservationConfig
+from jaxloc.sg2loc import (
+    Frame,
+    KLDConfig,
+    ObservationConfig,
+    Region,
+    StepConfig,
+    frames_on_grid,
+    run_pass,
+)
+from jaxloc.sg2loc._particles import init_region
 from jaxloc.synthetic.indoor import EpisodeConfig, RoomConfig, SensorConfig, make_episode
 from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 

@@ -3,11 +3,12 @@ the bare jitted filter step on the same frames, in the same run.
 
 For each image size (default 320x180 and 960x540, the paper's), a synthetic episode of the
 default room and sensor settings; the stream runs at the paper's 2500 particles and the coarse
-stride 20 (``OnlineConfig`` defaults). Per frame, wall clock until the estimate is ready:
+stride 20 (``SG2LocConfig`` defaults: the stream runs ``strides[0]``). Per frame, wall clock
+until the estimate is ready:
 
 * ``update``: what a user's loop waits for: the inputs' checks and transfers, the compiled step
   with the verdict and the relocalization policy, the new state;
-* ``step``: :func:`jaxloc.sg2loc.filter.step` alone, jitted, on the same frames and particles (the
+* ``step``: :func:`jaxloc.sg2loc.step` alone, jitted, on the same frames and particles (the
   peer: the per-frame cost of one round of :func:`jaxloc.sg2loc.localize`).
 
 The first frame is reported apart (all 2500 particles are rendered; KLD-sampling then keeps
@@ -28,8 +29,7 @@ import time
 import jax
 import numpy as np
 
-from jaxloc.sg2loc import online
-from jaxloc.sg2loc.filter import Frame, step
+from jaxloc.sg2loc import Frame, online, step
 from jaxloc.synthetic.indoor import EpisodeConfig, SensorConfig, make_episode
 
 

@@ -21,7 +21,7 @@ adjudicated with a float64 brute force over all triangles.
 a file (e.g. an older ``jaxloc/raycasting/hits.py`` with its traversal pasted in) and times its
 ``raycast``; the file's imports resolve against the installed jaxloc, so it may import only what
 exists there. Both cast the rays ``render_batch`` casts (tile order, packets of
-:data:`jaxloc.sg2loc.rendering.PACKET_SIZE`), so the two traversals are compared side by side in
+:data:`jaxloc.sg2loc._rendering.PACKET_SIZE`), so the two traversals are compared side by side in
 one run.
 """
 
@@ -43,7 +43,7 @@ import jaxloc
 from jaxloc import raycasting
 from jaxloc.geometry import rotation_world_cam
 from jaxloc.raycasting.engines import resolve_engine
-from jaxloc.sg2loc.rendering import PACKET_SIZE, _tiles
+from jaxloc.sg2loc._rendering import PACKET_SIZE, _tiles
 from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
 
 

@@ -154,9 +154,7 @@ def _sg2loc_inputs(count: int):
     10 and 8, that differ in traced settings only (the baseline's heights were static)."""
     import numpy as np
 
-    from jaxloc.sg2loc import SG2LocConfig
-    from jaxloc.sg2loc.scores import ObservationConfig
-    from jaxloc.sg2loc.verdict import VerdictConfig
+    from jaxloc.sg2loc import ObservationConfig, SG2LocConfig, VerdictConfig
     from jaxloc.synthetic.indoor import EpisodeConfig, SensorConfig, make_episode
 
     episode = make_episode(1000, 5, EpisodeConfig(sensor=SensorConfig(width=160, height=90)))

@@ -35,9 +35,7 @@ from _atomic import write_text_atomic
 
 from jaxloc.metrics import summarize, yaw_pose_errors
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc import SG2LocConfig, localize
-from jaxloc.sg2loc.filter import Region
-from jaxloc.sg2loc.resampling import KLDConfig
+from jaxloc.sg2loc import KLDConfig, Region, SG2LocConfig, localize
 from jaxloc.sg2loc.retrieval import Gallery, retrieve
 from jaxloc.synthetic import indoor
 from jaxloc.synthetic.indoor.merge import merge_rooms

@@ -42,8 +42,7 @@ import numpy as np  # noqa: E402
 from jaxloc.camera import stride_grid  # noqa: E402
 from jaxloc.metrics import SG2LOC_RECALL_THRESHOLDS, summarize, yaw_pose_errors  # noqa: E402
 from jaxloc.scene import SceneGraph  # noqa: E402
-from jaxloc.sg2loc import SG2LocConfig, learn, localize  # noqa: E402
-from jaxloc.sg2loc.scores import ObservationConfig
+from jaxloc.sg2loc import ObservationConfig, SG2LocConfig, learn, localize  # noqa: E402
 from jaxloc.synthetic.indoor import EpisodeConfig, RoomConfig, SensorConfig, make_episode
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -46,10 +46,14 @@ import numpy as np
 from jaxloc.geometry import wrap_angle
 from jaxloc.metrics import SG2LOC_RECALL_THRESHOLDS, summarize, yaw_pose_errors
 from jaxloc.scene import Capacity, SceneGraph
-from jaxloc.sg2loc import SG2LocConfig, carry_back, localize
-from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.scores import ObservationConfig
-from jaxloc.sg2loc.sequence import Sequence
+from jaxloc.sg2loc import (
+    FrameSequence,
+    KLDConfig,
+    ObservationConfig,
+    SG2LocConfig,
+    carry_back,
+    localize,
+)
 from jaxloc.synthetic.indoor import EpisodeConfig, SensorConfig, make_episode
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,9 +97,9 @@ PHASES = {
 }
 
 
-def prefix(sequence: Sequence, num_frames: int) -> Sequence:
+def prefix(sequence: FrameSequence, num_frames: int) -> FrameSequence:
     """The first ``num_frames`` frames of a sequence."""
-    return Sequence(
+    return FrameSequence(
         sequence.camera,
         sequence.patch_embeddings[:num_frames],
         sequence.ego_motion[: num_frames - 1],

@@ -112,7 +112,7 @@ def run_split(split: str, seeds: list[int], frames: int) -> None:
         with path.open() as f:
             done = {(int(r["seed"]), r["kind"], r["mode"]) for r in csv.DictReader(f)}
     shared = SharedCapacity()
-    stream_config = online.OnlineConfig(relocalize_after=0 if split == "dev" else 5)
+    stream_config = SG2LocConfig(relocalize_after=0 if split == "dev" else 5)
     for seed in seeds:
         if all((seed, k, m) in done for k in ("right", "wrong") for m in ("offline", "online")):
             continue
@@ -278,7 +278,7 @@ def main(argv=None) -> None:
                     data["depth_deficit"] = np.zeros_like(data["depth_deficit"])
                 print(table(data, flags(data, thresholds), args.frames))
     if args.report:
-        from jaxloc.sg2loc.verdict import VERDICT_WITH_DEPTH
+        from jaxloc.sg2loc._verdict import VERDICT_WITH_DEPTH
 
         thresholds = {k: float(getattr(VERDICT_WITH_DEPTH, k)) for k in GRID}
         data = load(args.report)

@@ -26,7 +26,12 @@ from typing import TYPE_CHECKING
 
 from jaxloc._lazy import lazy_exports
 
-__getattr__, __dir__ = lazy_exports(__name__, __file__)
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    __file__,
+    {"jaxloc.sg2loc._sequence": ("Sequence=FrameSequence",)},  # the name of jaxloc 0.2
+    {"Sequence": "jaxloc.FrameSequence"},
+)
 
 try:
     __version__ = version("jaxloc")
@@ -42,7 +47,7 @@ __all__ = [
     "RayHit",
     "Render",
     "SceneGraph",
-    "Sequence",
+    "FrameSequence",
     "enable_compilation_cache",
     "load_scene",
     "patch_grid",
@@ -91,5 +96,5 @@ if TYPE_CHECKING:  # what the lazy names are, for type checkers and the docs
     from jaxloc.io.scene_map import load_scene, save_scene
     from jaxloc.raycasting.hits import RayHit, raycast
     from jaxloc.scene import Capacity, SceneGraph
-    from jaxloc.sg2loc.rendering import Render, render, render_batch
-    from jaxloc.sg2loc.sequence import Sequence
+    from jaxloc.sg2loc._rendering import Render, render, render_batch
+    from jaxloc.sg2loc._sequence import FrameSequence

@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import ast
 import importlib
+import importlib.abc
 import importlib.util
+import sys
 import warnings
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
@@ -123,4 +125,38 @@ def renamed_names(module: str, renamed: Mapping[str, str]) -> Callable[[str], ob
         module,
         {module: [f"{old}={new}" for old, new in renamed.items()]},
         {old: f"{module}.{new}" for old, new in renamed.items()},
+    )
+
+
+class _ModuleAliases(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Imports ``old`` module names as the modules they became (``import package.old``), with a
+    ``DeprecationWarning``."""
+
+    def __init__(self, aliases: Mapping[str, str]):
+        self.aliases = dict(aliases)
+
+    def find_spec(self, fullname, path=None, target=None):
+        if fullname not in self.aliases:
+            return None
+        return importlib.util.spec_from_loader(fullname, self)
+
+    def create_module(self, spec):
+        new = self.aliases[spec.name]
+        warnings.warn(
+            f"{spec.name} is deprecated and will be removed in jaxloc {REMOVED_IN}; it is "
+            f"internal now (its public names are in {new.rpartition('.')[0]})",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return importlib.import_module(new)
+
+    def exec_module(self, module) -> None:
+        """Nothing to run: the module is the one it became, already imported."""
+
+
+def renamed_modules(package: str, renamed: Mapping[str, str]) -> None:
+    """Let ``import package.old`` (for each ``old -> new`` of ``renamed``) import
+    ``package.new``, with a ``DeprecationWarning``, until release :data:`REMOVED_IN`."""
+    sys.meta_path.append(
+        _ModuleAliases({f"{package}.{old}": f"{package}.{new}" for old, new in renamed.items()})
     )

@@ -29,7 +29,7 @@ from jaxloc import sg2loc, sharding
 from jaxloc.m2loc import build_map, localize_scan, localize_scans, tripletloc_config
 from jaxloc.raycasting import embree, engines
 from jaxloc.sg2loc import sharded
-from jaxloc.sg2loc.resampling import KLDConfig
+from jaxloc.sg2loc._resampling import KLDConfig
 from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 NUM_FRAMES = tiny.CHUNK

@@ -17,11 +17,11 @@ import trimesh
 
 from jaxloc.camera import Camera, patch_grid
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc.filter import Frame, Region, StepConfig, run_pass
-from jaxloc.sg2loc.particles import ParticleState, init_region
-from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.scores import ObservationConfig
-from jaxloc.sg2loc.sequence import Sequence
+from jaxloc.sg2loc._filter import Frame, Region, StepConfig, run_pass
+from jaxloc.sg2loc._particles import ParticleState, init_region
+from jaxloc.sg2loc._resampling import KLDConfig
+from jaxloc.sg2loc._scores import ObservationConfig
+from jaxloc.sg2loc._sequence import FrameSequence
 
 CAPACITY = 16
 EMBEDDING_DIM = 8
@@ -120,15 +120,16 @@ def initial_state(scene_graph: SceneGraph, seed: int = 1) -> ParticleState:
     return init_region(jax.random.key(seed), CAPACITY, region.lo, region.hi, region.floor_z)
 
 
-def sequence(num_frames: int, seed: int = 0) -> Sequence:
-    """A ``num_frames`` user-level :class:`~jaxloc.Sequence` on :func:`camera` (3x4 patches)."""
+def sequence(num_frames: int, seed: int = 0) -> FrameSequence:
+    """A ``num_frames`` user-level :class:`~jaxloc.FrameSequence` on :func:`camera` (3x4
+    patches)."""
     rng = np.random.default_rng(seed)
     cam = camera()
     h, w = cam.height, cam.width
     embeddings = rng.normal(size=(num_frames, 3, 4, EMBEDDING_DIM))
     depth = rng.uniform(0.5, 4.0, (num_frames, h, w))
     depth[rng.random(depth.shape) < 0.1] = 0.0
-    return Sequence(
+    return FrameSequence(
         cam,
         embeddings.astype(np.float32),
         np.tile(np.float32([0.1, 0.0, 0.0, 0.05]), (num_frames - 1, 1)),

@@ -1,7 +1,7 @@
 """The bad-input catalogue (``docs/bad_inputs.md``): each row not already tested elsewhere is here.
 
 Host-side checks (maps, mesh and map files, particles) run eagerly and cost nothing; the filter
-rows (bad values inside a hand-built :class:`~jaxloc.sg2loc.filter.Frame`, particles outside the
+rows (bad values inside a hand-built :class:`~jaxloc.sg2loc.Frame`, particles outside the
 map, likelihood underflow, all-invalid depth) share the one compiled pass of
 ``tests/_tiny_world.py``: traced values such as sigma change without recompiling.
 """
@@ -22,7 +22,7 @@ from jaxloc.io import meshes as mesh_io
 from jaxloc.io import read_embedding_table, read_instance_map, read_semantickitti_scan
 from jaxloc.m2loc import build_map
 from jaxloc.scene import Capacity, SceneGraph
-from jaxloc.sg2loc.particles import ParticleState, init_box, init_region, inject_uniform, predict
+from jaxloc.sg2loc._particles import ParticleState, init_box, init_region, inject_uniform, predict
 
 
 def _box() -> trimesh.Trimesh:

@@ -340,9 +340,9 @@ def test_localize_camera_online_is_the_library_stream(built, capsys):
     import jax
 
     from jaxloc.io import open_camera_recording
-    from jaxloc.sg2loc import online
-    from jaxloc.sg2loc.particles import PAPER_HEIGHTS
-    from jaxloc.sg2loc.resampling import KLDConfig
+    from jaxloc.sg2loc import SG2LocConfig, online
+    from jaxloc.sg2loc._particles import PAPER_HEIGHTS
+    from jaxloc.sg2loc._resampling import KLDConfig
 
     map_path, seq, _ = built
     argv = ["localize-camera", map_path, seq, *LOCALIZE, "--online", "--json"]
@@ -351,9 +351,9 @@ def test_localize_camera_online_is_the_library_stream(built, capsys):
     report = json.loads(out)
     assert report["mode"] == "online" and len(report["localized"]) == len(FRAMES)
     recording = open_camera_recording(seq, map_file=map_path, width=64)
-    config = online.OnlineConfig(
+    config = SG2LocConfig(
         capacity=1000,
-        stride=6,
+        strides=(6,),
         heights=(1.2, 1.3, 1.4),
         kld=KLDConfig(min_particles=500, max_particles=1000),
     )

@@ -22,7 +22,7 @@ from jaxloc.cli import build_parser, check_args, main
 from jaxloc.cli._demo import PAPER_STRIDES, fitting_strides, ray_grid_shape
 from jaxloc.cli._errors import InputError
 from jaxloc.cli._options import Parser
-from jaxloc.sg2loc.scores import SSIM_WINDOW
+from jaxloc.sg2loc._scores import SSIM_WINDOW
 
 #: The values every numeric option is tried with.
 VALUES = ("0", "-3", "nan")

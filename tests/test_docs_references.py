@@ -86,7 +86,7 @@ def test_rendered_objects_follow_the_pages(loaded):
     _, extension = loaded
     rendered = extension.rendered
     assert "jaxloc.m2loc._clusters.cluster_instances" in rendered  # as jaxloc.m2loc's
-    assert "jaxloc.sg2loc.localization.localize" in rendered
+    assert "jaxloc.sg2loc._localization.localize" in rendered
     assert "jaxloc.raycasting.traversal._wide_nodes" not in rendered
     assert "jaxloc.sg2loc._EXPORTS" not in rendered
 

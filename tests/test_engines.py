@@ -21,7 +21,7 @@ from jaxloc import Camera, raycast, render_batch, stride_grid
 from jaxloc.raycasting import embree, engines
 from jaxloc.raycasting._cache import fingerprint
 from jaxloc.sg2loc import SG2LocConfig
-from jaxloc.sg2loc.filter import StepConfig
+from jaxloc.sg2loc._filter import StepConfig
 from jaxloc.sg2loc.refine import RefineConfig
 
 OPTIONAL = ("embree", "warp")

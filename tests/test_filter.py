@@ -1,4 +1,4 @@
-"""The jitted SG2Loc filter (:mod:`jaxloc.sg2loc.filter`) and the coarse-to-fine localizer
+"""The jitted SG2Loc filter (:mod:`jaxloc.sg2loc._filter`) and the coarse-to-fine localizer
 (:mod:`jaxloc.sg2loc`) on a tiny synthetic room.
 
 Cost model: the raycaster does ~70k rays per CPU-second and one compilation of the step costs
@@ -6,7 +6,7 @@ tens of seconds on the shared 2-core machine, so everything here is tiny (a 4-5 
 coarse meshes, 160x90 images with the 9x16 patch grid of 10 px patches, stride 10 = 16x9 rays
 per particle, a few hundred particles, 5 frames) and compiled functions are shared:
 
-* every :func:`~jaxloc.sg2loc.filter.step` test goes through ONE module-level ``jax.jit`` (``STEP``)
+* every :func:`~jaxloc.sg2loc.step` test goes through ONE module-level ``jax.jit`` (``STEP``)
   with one set of static shapes, which is also what the no-retrace test counts;
 * every full-setting :func:`~jaxloc.sg2loc.localize` test reuses the ``located`` fixture's two
   compiled rounds; the depth/colour-free tests share one single-round compilation.
@@ -24,12 +24,13 @@ import numpy as np
 import pytest
 from _compilations import COMPILED
 
-from jaxloc import Sequence
+from jaxloc import FrameSequence
 from jaxloc.camera import Camera, stride_grid
 from jaxloc.geometry import compose_yaw, ego_motion, wrap_angle
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc import SG2LocConfig, SG2LocResult, carry_back, localization, localize
-from jaxloc.sg2loc.filter import (
+from jaxloc.sg2loc import SG2LocConfig, SG2LocResult, carry_back, localize
+from jaxloc.sg2loc import _localization as localization
+from jaxloc.sg2loc._filter import (
     Frame,
     Region,
     StepConfig,
@@ -38,9 +39,9 @@ from jaxloc.sg2loc.filter import (
     run_pass,
     step,
 )
-from jaxloc.sg2loc.particles import ParticleState, init_region
-from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.scores import DEPTH_MAX, SEMANTIC_MAX, ObservationConfig
+from jaxloc.sg2loc._particles import ParticleState, init_region
+from jaxloc.sg2loc._resampling import KLDConfig
+from jaxloc.sg2loc._scores import DEPTH_MAX, SEMANTIC_MAX, ObservationConfig
 from jaxloc.sharding import device_mesh
 from jaxloc.synthetic.indoor import EpisodeConfig, RoomConfig, SensorConfig, make_episode
 
@@ -418,10 +419,10 @@ LOCATED_WARM_UP_ROUNDS: list[str] = []
 LOCATED_COMPILES: list[str] = []
 
 
-def shapes_only(sequence: Sequence) -> Sequence:
-    """A placeholder of ``sequence``'s sizes, for :func:`jaxloc.sg2loc.localization.warm_up`."""
+def shapes_only(sequence: FrameSequence) -> FrameSequence:
+    """A placeholder of ``sequence``'s sizes, for :func:`jaxloc.sg2loc.warm_up`."""
     embedding_dim = sequence.patch_embeddings.shape[-1]
-    return Sequence.zeros(
+    return FrameSequence.zeros(
         sequence.camera,
         sequence.num_frames,
         sequence.patch_shape,
@@ -466,7 +467,7 @@ def test_after_a_warm_up_localize_compiles_nothing(located):
 
 
 def test_warm_up_checks_its_arguments_in_the_calling_thread(episode, scene):
-    wrong_width = Sequence.zeros(episode.sequence.camera, 2, (9, 16), 3)
+    wrong_width = FrameSequence.zeros(episode.sequence.camera, 2, (9, 16), 3)
     with pytest.raises(ValueError, match="patch embeddings have 3 dims"):
         localization.warm_up(jax.random.key(0), scene, wrong_width, LOCALIZE_CONFIG)
     too_coarse = dataclasses.replace(LOCALIZE_CONFIG, strides=(10, 200))
@@ -556,7 +557,7 @@ def test_localize_without_depth_and_rgb(episode, scene):
     """A sequence without depth and RGB runs semantic-only: flags off, depth/colour scores 0,
     no NaN, and exactly what the same sequence gives with depth/colour switched off."""
     seq = episode.sequence
-    bare = Sequence(seq.camera, seq.patch_embeddings, seq.ego_motion, tilt=seq.tilt)
+    bare = FrameSequence(seq.camera, seq.patch_embeddings, seq.ego_motion, tilt=seq.tilt)
     key = jax.random.key(70)
     result = localize(key, scene, bare, SEMANTIC_CONFIG)
     assert result.used_depth is False and result.used_color is False
@@ -576,7 +577,7 @@ def test_localize_with_all_invalid_depth(episode, scene):
     """Depth all zeros is still 'depth present' (used_depth True) but carries no information:
     every frame's depth score is the maximum, and the result is valid."""
     seq = episode.sequence
-    holes = Sequence(
+    holes = FrameSequence(
         seq.camera,
         seq.patch_embeddings,
         seq.ego_motion,
@@ -594,7 +595,7 @@ def test_localize_with_all_invalid_depth(episode, scene):
 
 def test_localize_rejects_an_embedding_dimension_mismatch(episode, scene):
     seq = episode.sequence
-    short = Sequence(seq.camera, seq.patch_embeddings[..., :16], seq.ego_motion)
+    short = FrameSequence(seq.camera, seq.patch_embeddings[..., :16], seq.ego_motion)
     with pytest.raises(
         ValueError, match="patch embeddings have 16 dims but the map's objects have 400"
     ):
@@ -605,7 +606,7 @@ def test_localize_spreads_round_0_over_the_configured_camera_heights(episode, sc
     """SG2LocConfig.heights sets the levels of round 0's particles (default: the paper's 1.5-1.8 m
     above the floor); without motion noise, the first frame's particles sit exactly on them."""
     seq = episode.sequence
-    one = Sequence(seq.camera, seq.patch_embeddings[:1], np.zeros((0, 4)))
+    one = FrameSequence(seq.camera, seq.patch_embeddings[:1], np.zeros((0, 4)))
     floor = float(Region.of_scene(scene).floor_z)
     for heights in [(1.2, 1.35), None]:
         config = dataclasses.replace(SEMANTIC_CONFIG, sigma_trans=0.0)
@@ -625,7 +626,7 @@ def test_localize_spreads_round_0_over_the_configured_camera_heights(episode, sc
 def test_localize_rejects_wrong_argument_types(episode, scene):
     with pytest.raises(TypeError, match="scene must be a jaxloc.SceneGraph"):
         localize(jax.random.key(0), episode.room, episode.sequence, SEMANTIC_CONFIG)
-    with pytest.raises(TypeError, match="sequence must be a jaxloc.Sequence"):
+    with pytest.raises(TypeError, match="sequence must be a jaxloc.FrameSequence"):
         localize(jax.random.key(0), scene, episode.sequence.patch_embeddings, SEMANTIC_CONFIG)
 
 

@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxloc import Camera, Sequence, render, stride_grid
+from jaxloc import Camera, FrameSequence, render, stride_grid
 from jaxloc.geometry import compose_yaw, ego_motion, wrap_angle
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc import SG2LocConfig, learn, localize
-from jaxloc.sg2loc.filter import Region
-from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.scores import (
+from jaxloc.sg2loc._filter import Region
+from jaxloc.sg2loc._resampling import KLDConfig
+from jaxloc.sg2loc._scores import (
     DEPTH_MAX,
     ObservationConfig,
     match_patches,
@@ -78,7 +78,7 @@ def scene() -> SceneGraph:
 
 
 @pytest.fixture(scope="module")
-def sequence(scene) -> Sequence:
+def sequence(scene) -> FrameSequence:
     """The scene rendered from POSES_GT at every pixel, patch embeddings = the patch's object."""
     full = stride_grid(CAMERA, STRIDE, ROWS, COLS)
     views = [RENDER(scene, jnp.asarray(p), CAMERA, full) for p in POSES_GT]
@@ -99,7 +99,7 @@ def sequence(scene) -> Sequence:
     motion = np.stack(
         [np.asarray(ego_motion(POSES_GT[t], POSES_GT[t + 1])) for t in range(NUM_FRAMES - 1)]
     )
-    return Sequence(
+    return FrameSequence(
         CAMERA,
         patch.reshape(NUM_FRAMES, ROWS, COLS, 8),
         motion,

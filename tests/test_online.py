@@ -11,16 +11,20 @@ import pytest
 from _compilations import compilations
 
 from jaxloc.sg2loc import SG2LocConfig, localize, online
-from jaxloc.sg2loc.particles import PAPER_HEIGHTS
-from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.verdict import VerdictConfig
+from jaxloc.sg2loc._particles import PAPER_HEIGHTS
+from jaxloc.sg2loc._resampling import KLDConfig
+from jaxloc.sg2loc._verdict import VerdictConfig
 
 NUM_FRAMES = 5
 KLD = KLDConfig(min_particles=4, max_particles=tiny.CAPACITY)
 #: stride 2 on the 32x18 camera: 16 x 9 rays, 3 x 4 patches (SSIM needs at least 7 x 7 rays).
-STREAM = online.OnlineConfig(
-    capacity=tiny.CAPACITY, stride=2, patch_shape=(3, 4), kld=KLD, relocalize_after=0
-)
+STREAM = SG2LocConfig(capacity=tiny.CAPACITY, strides=(2,), kld=KLD, relocalize_after=0)
+PATCHES = (3, 4)
+
+
+def start(seed, scene, sequence, config=STREAM):
+    """A stream of ``config`` on the tiny world's camera and 3 x 4 patches."""
+    return online.init(jax.random.key(seed), scene, sequence.camera, config, patch_shape=PATCHES)
 
 
 def stream(state, sequence, frames=range(NUM_FRAMES), **given):
@@ -41,7 +45,7 @@ def world():
 
 def test_stream_equals_one_round_of_localize(world):
     scene, sequence = world
-    state = online.init(jax.random.key(3), scene, sequence.camera, STREAM)
+    state = start(3, scene, sequence)
     state, est = stream(state, sequence)
     config = SG2LocConfig(capacity=tiny.CAPACITY, strides=(2,), kld=KLD)
     located = localize(jax.random.key(3), scene, sequence, config)
@@ -55,11 +59,11 @@ def test_stream_equals_one_round_of_localize(world):
 
 def test_one_program_for_the_whole_stream(world):
     scene, sequence = world
-    state = online.init(jax.random.key(4), scene, sequence.camera, STREAM)
+    state = start(4, scene, sequence)
     state, _ = stream(state, sequence, range(1))
     with compilations() as compiled:
         stream(state, sequence, range(1, NUM_FRAMES))
-        other = online.init(jax.random.key(5), scene, sequence.camera, STREAM)
+        other = start(5, scene, sequence)
         stream(other, sequence, range(2))  # a new stream of the same shapes: no new program
     assert not [c for c in compiled if "_update" in c], compiled
     with compilations() as compiled:
@@ -70,12 +74,15 @@ def test_one_program_for_the_whole_stream(world):
 def test_deterministic_and_nan_motion_is_survived(world):
     scene, sequence = world
     runs = [
-        stream(online.init(jax.random.key(6), scene, sequence.camera, STREAM), sequence)[1]
+        stream(
+            start(6, scene, sequence),
+            sequence,
+        )[1]
         for _ in range(2)
     ]
     for a, b in zip(jax.tree.leaves(runs[0]), jax.tree.leaves(runs[1]), strict=True):
         np.testing.assert_array_equal(a, b)
-    state = online.init(jax.random.key(6), scene, sequence.camera, STREAM)
+    state = start(6, scene, sequence)
     state, _ = stream(state, sequence, range(1))
     state, est = online.update(
         state, sequence.patch_embeddings[1], np.full(4, np.nan), sequence.depth[1], sequence.rgb[1]
@@ -86,16 +93,15 @@ def test_deterministic_and_nan_motion_is_survived(world):
 def test_relocalization_after_frames_without_the_verdict(world):
     scene, sequence = world
     never = VerdictConfig(min_semantic_fraction=2.0)  # no frame can be flagged
-    config = online.OnlineConfig(
+    config = SG2LocConfig(
         capacity=tiny.CAPACITY,
-        stride=2,
-        patch_shape=(3, 4),
+        strides=(2,),
         kld=KLD,
         verdict=never,
         relocalize_after=2,
         relocalize_count=tiny.CAPACITY,
     )
-    state = online.init(jax.random.key(7), scene, sequence.camera, config)
+    state = start(7, scene, sequence, config)
     states, relocalized = [], []
     for t in range(NUM_FRAMES):
         state, est = stream(state, sequence, [t])
@@ -114,7 +120,7 @@ def test_relocalization_after_frames_without_the_verdict(world):
 
 def test_bad_frames_and_configs_are_clear_errors(world):
     scene, sequence = world
-    state = online.init(jax.random.key(8), scene, sequence.camera, STREAM)
+    state = start(8, scene, sequence)
     patches, depth, rgb = sequence.patch_embeddings[0], sequence.depth[0], sequence.rgb[0]
     zero = np.zeros(4, np.float32)
     cases = [
@@ -129,26 +135,48 @@ def test_bad_frames_and_configs_are_clear_errors(world):
             online.update(state, *args, **kwargs)
     with pytest.raises(TypeError, match="OnlineState"):
         online.update(None, patches, zero)
-    with pytest.raises(ValueError, match="stride must be a positive int"):
-        online.OnlineConfig(stride=0)
-    with pytest.raises(ValueError, match="relocalize_after must be >= 0"):
-        online.OnlineConfig(relocalize_after=-1)
+    with pytest.raises(ValueError, match="strides must be positive ints"):
+        SG2LocConfig(strides=(0,))
+    with pytest.raises(ValueError, match="relocalize_after must be an int >= 0, got -1"):
+        SG2LocConfig(relocalize_after=-1)
+    with pytest.raises(ValueError, match="patch_shape must be two positive ints"):
+        online.init(jax.random.key(0), scene, sequence.camera, STREAM, patch_shape=(3, 0))
     with pytest.raises(ValueError, match="SSIM needs a ray grid of at least 7 x 7"):
         online.init(
             jax.random.key(0),
             scene,
             sequence.camera,
-            online.OnlineConfig(capacity=16, stride=4, patch_shape=(3, 4)),
+            SG2LocConfig(capacity=16, strides=(4,)),
+            patch_shape=PATCHES,
         )
+
+
+def test_the_config_of_jaxloc_0_2_still_works_with_a_warning(world):
+    """``OnlineConfig`` (deprecated) stands for the SG2LocConfig of its stride: the same stream."""
+    scene, sequence = world
+    with pytest.warns(DeprecationWarning, match="OnlineConfig is deprecated"):
+        old = online.OnlineConfig(
+            capacity=tiny.CAPACITY, stride=2, patch_shape=PATCHES, kld=KLD, relocalize_after=0
+        )
+    _, expected = stream(
+        start(3, scene, sequence),
+        sequence,
+        range(2),
+    )
+    _, got = stream(online.init(jax.random.key(3), scene, sequence.camera, old), sequence, range(2))
+    np.testing.assert_array_equal(got.pose, expected.pose)
 
 
 def test_filter_sequence_is_the_stream(world):
     scene, sequence = world
-    _, by_hand = stream(online.init(jax.random.key(9), scene, sequence.camera, STREAM), sequence)
+    _, by_hand = stream(
+        start(9, scene, sequence),
+        sequence,
+    )
     seen = []
     whole = online.filter_sequence(jax.random.key(9), scene, sequence, STREAM, progress=seen.append)
     assert seen == list(range(NUM_FRAMES))
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(by_hand), strict=True):
         np.testing.assert_array_equal(a, b)
-    with pytest.raises(TypeError, match="jaxloc.Sequence"):
+    with pytest.raises(TypeError, match="jaxloc.FrameSequence"):
         online.filter_sequence(jax.random.key(0), scene, None)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxloc.geometry import compose_yaw, ego_motion
-from jaxloc.sg2loc import particles as P
+from jaxloc.sg2loc import _particles as P
 
 KEY = jax.random.PRNGKey(0)
 HEIGHTS = np.array(P.PAPER_HEIGHTS)

@@ -29,9 +29,9 @@ from jaxloc.m2loc._matching import match_descriptors
 from jaxloc.m2loc._query import describe_query, register_query
 from jaxloc.m2loc._registration import weighted_kabsch
 from jaxloc.m2loc._tracking import TrackState
-from jaxloc.sg2loc.filter import run_pass
+from jaxloc.sg2loc._filter import run_pass
+from jaxloc.sg2loc._scores import match_patches
 from jaxloc.sg2loc.retrieval import Gallery, retrieve
-from jaxloc.sg2loc.scores import match_patches
 from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
 
 HIGHEST = jax.lax.Precision.HIGHEST

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 from conftest import BODY_CAM, ROOM, box_room, room_hits, rot_x, rot_y, rot_z
 
-from jaxloc import Camera, SceneGraph, Sequence
+from jaxloc import Camera, FrameSequence, SceneGraph
 from jaxloc.geometry import ego_motion, yaw_pose_to_se3
 from jaxloc.lsq import RobustLoss
 from jaxloc.sg2loc.refine import (
@@ -470,7 +470,7 @@ def test_sequence_refinement_through_ego_motion(room):
             for a, b in zip(poses[:-1], poses[1:], strict=True)
         ]
     )
-    sequence = Sequence(CAMERA, np.ones((3, 9, 16, 8)), motion, depth=depth, tilt=tilts)
+    sequence = FrameSequence(CAMERA, np.ones((3, 9, 16, 8)), motion, depth=depth, tilt=tilts)
     start = poses[-1] + np.array([0.2, -0.15, 0.1, np.deg2rad(8.0)])
     config = RefineConfig(residuals="both", mode="sequence", depth_stride=4)
     result = refine(
@@ -596,7 +596,7 @@ def test_bad_input_raises_clear_errors(room, truth, depth_image, matches):
     with pytest.raises(ValueError, match="residuals must be"):
         RefineConfig(residuals="lidar")
     with pytest.raises(ValueError, match="yaw_pose"):
-        sequence = Sequence(
+        sequence = FrameSequence(
             CAMERA, np.ones((1, 9, 16, 8)), np.zeros((0, 4)), depth=depth_image[None]
         )
         refine(room, sequence, np.array([1.0, 2.0, np.nan, 0.0]))

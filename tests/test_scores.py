@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxloc.sg2loc import scores as S
+from jaxloc.sg2loc import _scores as S
 
 
 def random_frame(seed, num_patches=20, num_objects=7, dim=16):

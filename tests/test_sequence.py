@@ -1,4 +1,4 @@
-"""Validation of :class:`jaxloc.Sequence`: bad input fails at the boundary with a clear message.
+"""Validation of :class:`jaxloc.FrameSequence`: bad input fails at the boundary, clearly.
 
 Every check builds a small valid sequence (T = 3 frames, a 32x18 camera, a 3x4 patch grid,
 8-d embeddings), breaks one argument, and matches the error type and message. Host-side only:
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jaxloc import Camera, Sequence
+from jaxloc import Camera, FrameSequence
 
 T, ROWS, COLS, DIM = 3, 3, 4, 8
 CAMERA = Camera.from_fov(32, 18, 60.0)
@@ -29,16 +29,16 @@ def valid_arrays(seed: int = 0) -> dict[str, np.ndarray]:
     }
 
 
-def make(**overrides) -> Sequence:
+def make(**overrides) -> FrameSequence:
     """A sequence from :func:`valid_arrays` with some arguments replaced."""
     kwargs = valid_arrays()
     kwargs.update(overrides)
-    return Sequence(CAMERA, **kwargs)
+    return FrameSequence(CAMERA, **kwargs)
 
 
 def test_valid_sequence_is_float32_and_keeps_values():
     arrays = valid_arrays()
-    seq = Sequence(CAMERA, **arrays)
+    seq = FrameSequence(CAMERA, **arrays)
     assert seq.num_frames == T and seq.patch_shape == (ROWS, COLS)
     for name in ("patch_embeddings", "ego_motion", "depth", "rgb", "tilt"):
         value = getattr(seq, name)
@@ -48,7 +48,7 @@ def test_valid_sequence_is_float32_and_keeps_values():
 
 def test_optional_inputs_default_to_none_and_level():
     arrays = valid_arrays()
-    seq = Sequence(CAMERA, arrays["patch_embeddings"], arrays["ego_motion"])
+    seq = FrameSequence(CAMERA, arrays["patch_embeddings"], arrays["ego_motion"])
     assert seq.depth is None and seq.rgb is None
     assert seq.tilt.shape == (T, 2) and seq.tilt.dtype == np.float32
     assert not np.any(seq.tilt)
@@ -56,7 +56,7 @@ def test_optional_inputs_default_to_none_and_level():
 
 def test_single_frame_and_integer_inputs_are_accepted():
     emb = np.ones((1, ROWS, COLS, DIM), np.int64)
-    seq = Sequence(CAMERA, emb, np.zeros((0, 4)), depth=np.zeros((1, H, W), np.uint16))
+    seq = FrameSequence(CAMERA, emb, np.zeros((0, 4)), depth=np.zeros((1, H, W), np.uint16))
     assert seq.num_frames == 1 and seq.ego_motion.shape == (0, 4)
     assert seq.patch_embeddings.dtype == np.float32 and seq.depth.dtype == np.float32
 
@@ -64,7 +64,7 @@ def test_single_frame_and_integer_inputs_are_accepted():
 def test_camera_must_be_a_camera():
     arrays = valid_arrays()
     with pytest.raises(TypeError, match="camera must be a jaxloc.Camera"):
-        Sequence((32, 18), arrays["patch_embeddings"], arrays["ego_motion"])
+        FrameSequence((32, 18), arrays["patch_embeddings"], arrays["ego_motion"])
 
 
 @pytest.mark.parametrize(
@@ -103,7 +103,7 @@ def test_a_zero_embedding_is_a_patch_without_evidence():
     """A zero vector (a patch whose label image holds no class of the map) is accepted; it
     predicts no object and adds nothing to either semantic score: the score equals that of the
     same view with the patch rendering nothing."""
-    from jaxloc.sg2loc.scores import match_patches, semantic_score
+    from jaxloc.sg2loc._scores import match_patches, semantic_score
 
     emb = valid_arrays()["patch_embeddings"]
     emb[2, 1, 0] = 0.0
@@ -125,7 +125,7 @@ def test_a_zero_embedding_is_a_patch_without_evidence():
 
 def test_no_frames():
     with pytest.raises(ValueError, match="at least one frame"):
-        Sequence(CAMERA, np.ones((0, ROWS, COLS, DIM)), np.zeros((0, 4)))
+        FrameSequence(CAMERA, np.ones((0, ROWS, COLS, DIM)), np.zeros((0, 4)))
 
 
 @pytest.mark.parametrize("frames", [T, T - 2, 0], ids=["T", "T-2", "none"])
@@ -137,7 +137,7 @@ def test_ego_motion_of_wrong_length(frames):
 def test_ego_motion_with_three_components_divisible_by_four():
     # (4, 3) has 12 elements, so it reshapes to (3, 4) before the shape check: still rejected.
     with pytest.raises(ValueError, match=r"ego_motion must have shape \(T-1, 4\)"):
-        Sequence(CAMERA, np.ones((5, ROWS, COLS, DIM)), np.zeros((4, 3)))
+        FrameSequence(CAMERA, np.ones((5, ROWS, COLS, DIM)), np.zeros((4, 3)))
 
 
 def test_ego_motion_with_three_components():
@@ -237,7 +237,7 @@ def test_tilt_with_nan():
 def test_inputs_are_copied():
     """Mutating the caller's arrays afterwards does not change the sequence."""
     arrays = {k: v.astype(np.float32) for k, v in valid_arrays().items()}
-    seq = Sequence(CAMERA, **arrays)
+    seq = FrameSequence(CAMERA, **arrays)
     before = {k: getattr(seq, k).copy() for k in arrays}
     for value in arrays.values():
         value[...] = 0.0
@@ -247,12 +247,12 @@ def test_inputs_are_copied():
 
 @pytest.mark.parametrize("depth, rgb", [(True, True), (False, True), (True, False)])
 def test_zeros_has_the_shapes_and_dtypes_of_a_recording(depth, rgb):
-    """``Sequence.zeros`` (the placeholder ``warm_up`` compiles from) matches a real sequence of
-    the same sizes leaf for leaf: the same shapes, dtypes and missing images."""
+    """``FrameSequence.zeros`` (the placeholder ``warm_up`` compiles from) matches a real
+    sequence of the same sizes leaf for leaf: the same shapes, dtypes and missing images."""
     kwargs = valid_arrays()
     kwargs.update(depth=kwargs["depth"] if depth else None, rgb=kwargs["rgb"] if rgb else None)
-    real = Sequence(CAMERA, **kwargs)
-    zeros = Sequence.zeros(CAMERA, T, (ROWS, COLS), DIM, depth=depth, rgb=rgb)
+    real = FrameSequence(CAMERA, **kwargs)
+    zeros = FrameSequence.zeros(CAMERA, T, (ROWS, COLS), DIM, depth=depth, rgb=rgb)
 
     def layout(sequence):
         return [
@@ -265,5 +265,5 @@ def test_zeros_has_the_shapes_and_dtypes_of_a_recording(depth, rgb):
 
 
 def test_zeros_of_one_frame_has_no_motion():
-    one = Sequence.zeros(CAMERA, 1, (ROWS, COLS), DIM)
+    one = FrameSequence.zeros(CAMERA, 1, (ROWS, COLS), DIM)
     assert one.num_frames == 1 and one.ego_motion.shape == (0, 4)

@@ -21,13 +21,13 @@ import pytest
 from _compilations import compilations
 from test_filter import EPISODE_CONFIG, assert_bitwise_equal
 
-from jaxloc import Sequence
+from jaxloc import FrameSequence
 from jaxloc.camera import stride_grid
-from jaxloc.sg2loc import SG2LocConfig, localize, online
-from jaxloc.sg2loc.filter import Region, frames_on_grid, grid_pixels
-from jaxloc.sg2loc.localization import warm_up
-from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.verdict import VerdictConfig
+from jaxloc.sg2loc import SG2LocConfig, localize
+from jaxloc.sg2loc._filter import Region, frames_on_grid, grid_pixels
+from jaxloc.sg2loc._localization import warm_up
+from jaxloc.sg2loc._resampling import KLDConfig
+from jaxloc.sg2loc._verdict import VerdictConfig
 from jaxloc.synthetic.indoor import make_episode
 
 NUM_FRAMES = 3
@@ -92,10 +92,10 @@ VMAP_KEYS = jax.jit(jax.vmap(_localized, in_axes=(0, None, None, None)))
 VMAP_SEQUENCES = jax.jit(jax.vmap(_localized, in_axes=(None, None, None, 0)))
 
 
-def window(sequence: Sequence, start: int, length: int) -> Sequence:
+def window(sequence: FrameSequence, start: int, length: int) -> FrameSequence:
     """Frames ``start .. start + length - 1`` of ``sequence``."""
     frames = slice(start, start + length)
-    return Sequence(
+    return FrameSequence(
         sequence.camera,
         sequence.patch_embeddings[frames],
         sequence.ego_motion[start : start + length - 1],
@@ -208,7 +208,7 @@ def test_progress_bar_after_a_warm_up(world, capsys):
     every frame of both rounds, and the results are bit for bit those without it. A second call
     runs the same compiled scans and ticks its own bar."""
     scene, sequence, _ = world
-    placeholder = Sequence.zeros(
+    placeholder = FrameSequence.zeros(
         sequence.camera, NUM_FRAMES, sequence.patch_shape, scene.embeddings.shape[1]
     )
     warm_up(KEY, scene, placeholder, BASE, progress=True).result()
@@ -242,8 +242,6 @@ def test_configurations_inside_a_trace_are_checked_by_shape_only(world):
         stacked(BASE, dataclasses.replace(BASE, sigma_rot=0.2))
     )
     np.testing.assert_allclose(doubled.sigma_rot, [0.1, 0.4])
-    streaming = jax.jit(lambda h: online.OnlineConfig(heights=h).heights)(jnp.array([1.3]))
-    np.testing.assert_allclose(streaming, [1.3])
     with pytest.raises(ValueError, match="heights must be a non-empty tuple"):
         jax.jit(lambda h: SG2LocConfig(heights=h).heights)(jnp.ones((2, 2)))
     with pytest.raises(ValueError, match=r"box_half_widths must be positive, got \(0.8, -0.4\)"):
@@ -252,8 +250,6 @@ def test_configurations_inside_a_trace_are_checked_by_shape_only(world):
         SG2LocConfig(box_half_widths=(0.8,))
     with pytest.raises(ValueError, match="inject_count must be an int >= 0, got -1"):
         SG2LocConfig(inject_count=-1)
-    with pytest.raises(ValueError, match="heights must be finite heights >= 0 m"):
-        online.OnlineConfig(heights=(1.0, -1.0))
 
 
 def test_host_helpers_under_jit_equal_the_host_path(world):

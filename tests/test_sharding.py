@@ -25,7 +25,7 @@ import pytest
 
 from jaxloc import sg2loc, sharding
 from jaxloc.sg2loc import sharded
-from jaxloc.sg2loc.particles import ParticleState
+from jaxloc.sg2loc._particles import ParticleState
 
 SCRIPT = Path(__file__).with_name("_sharding_check.py")
 #: The package of each optional engine.

@@ -1,4 +1,4 @@
-"""SG2Loc's per-frame verdict (:mod:`jaxloc.sg2loc.verdict`): its parts against numpy
+"""SG2Loc's per-frame verdict (:mod:`jaxloc.sg2loc._verdict`): its parts against numpy
 references, its rule, and the verdict of the localizer on a right place and a look-alike wrong one.
 
 The end-to-end cases use the small room of tests/test_filter.py (160x90 frames, 9x16 patches) with
@@ -20,9 +20,9 @@ from test_filter import EPISODE_CONFIG, LOCALIZE_CONFIG  # the same room and loc
 
 from jaxloc.metrics import yaw_pose_errors
 from jaxloc.sg2loc import localize
-from jaxloc.sg2loc.particles import ParticleState
-from jaxloc.sg2loc.scores import ObservationConfig, Scores, match_patches
-from jaxloc.sg2loc.verdict import VerdictConfig, best_semantic_score, judge, particle_spread
+from jaxloc.sg2loc._particles import ParticleState
+from jaxloc.sg2loc._scores import ObservationConfig, Scores, match_patches
+from jaxloc.sg2loc._verdict import VerdictConfig, best_semantic_score, judge, particle_spread
 from jaxloc.synthetic.indoor import make_episode, make_lookalike_episode
 
 

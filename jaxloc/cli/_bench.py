@@ -42,8 +42,8 @@ def check_bench_raycast(args: argparse.Namespace) -> None:
 
 def check_bench_filter(args: argparse.Namespace) -> None:
     """The image must hold the demo's patch grid, and ``--stride`` cast at least SSIM's 7 x 7
-    rays on it (:class:`jaxloc.sg2loc.filter.StepConfig` refuses a smaller ray grid)."""
-    from jaxloc.sg2loc.scores import SSIM_WINDOW
+    rays on it (:class:`jaxloc.sg2loc.StepConfig` refuses a smaller ray grid)."""
+    from jaxloc.sg2loc._scores import SSIM_WINDOW
 
     check_image_size(args)
     if not fits_ssim(args.stride, args.width, args.height):
@@ -68,7 +68,7 @@ def run_bench_raycast(args: argparse.Namespace) -> int:
     import jax
 
     from jaxloc.camera import Camera, stride_grid
-    from jaxloc.sg2loc.rendering import render_batch
+    from jaxloc.sg2loc import render_batch
     from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
 
     room = make_room(
@@ -111,8 +111,7 @@ def run_bench_filter(args: argparse.Namespace) -> int:
     import jax
 
     from jaxloc.camera import stride_grid
-    from jaxloc.sg2loc import SG2LocConfig, localize
-    from jaxloc.sg2loc.resampling import KLDConfig
+    from jaxloc.sg2loc import KLDConfig, SG2LocConfig, localize
     from jaxloc.synthetic import indoor
 
     start = time.perf_counter()

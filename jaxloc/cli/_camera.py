@@ -34,7 +34,7 @@ An odometry file (--odometry, default odometry.txt beside the frames: lines "N m
 camera-to-odometry, z up) gives the ego-motion and tilt instead of the recording's poses.
 
 Per frame it prints the estimate (x, y, z in metres, yaw in degrees; the map's frame), the verdict
-(localized or not: act on the estimate only when localized; jaxloc.sg2loc.verdict) and, with
+(localized or not: act on the estimate only when localized; jaxloc.sg2loc._verdict) and, with
 ground-truth poses, the position and rotation errors and the recalls. --online feeds the frames
 one at a time to the streaming filter (jaxloc.sg2loc.online: one round at the first stride,
 what a live camera would have been told) instead of the coarse-to-fine rounds over the sequence.
@@ -111,7 +111,7 @@ def add_parser(commands) -> None:
         type=nonnegative_float,
         nargs="+",
         help="initial camera heights above the floor, m (default the paper's, "
-        "jaxloc.sg2loc.particles.PAPER_HEIGHTS)",
+        "jaxloc.sg2loc._particles.PAPER_HEIGHTS)",
     )
     group.add_argument(
         "--width", type=positive_int, default=320, help="working width, px (default 320)"
@@ -136,19 +136,13 @@ def add_parser(commands) -> None:
 
 
 def _config(args: argparse.Namespace):
-    """The offline (:class:`~jaxloc.sg2loc.SG2LocConfig`) or, with ``--online``, the streaming
-    (:class:`~jaxloc.sg2loc.online.OnlineConfig`) settings of the options."""
-    from jaxloc.sg2loc import SG2LocConfig, online
-    from jaxloc.sg2loc.particles import PAPER_HEIGHTS
-    from jaxloc.sg2loc.resampling import KLDConfig
+    """The :class:`~jaxloc.sg2loc.SG2LocConfig` of the options (offline, or with ``--online``
+    the streaming filter's: its first stride)."""
+    from jaxloc.sg2loc import PAPER_HEIGHTS, KLDConfig, SG2LocConfig
 
     heights = tuple(PAPER_HEIGHTS if args.heights is None else args.heights)
     kld = KLDConfig(min_particles=min(500, args.particles), max_particles=args.particles)
     try:
-        if args.online:
-            return online.OnlineConfig(
-                capacity=args.particles, stride=args.strides[0], heights=heights, kld=kld
-            )
         return SG2LocConfig(
             capacity=args.particles,
             strides=tuple(args.strides),
@@ -223,8 +217,8 @@ def run_localize_camera(args: argparse.Namespace) -> int:
     from jaxloc.io import write_camera_poses
     from jaxloc.io.scene_map import load_scene
     from jaxloc.metrics import summarize, yaw_pose_errors
+    from jaxloc.sg2loc._scores import SSIM_WINDOW
     from jaxloc.sg2loc.figures import plot_rounds
-    from jaxloc.sg2loc.scores import SSIM_WINDOW
 
     if args.online and args.plot is not None:
         raise InputError("--plot draws the coarse-to-fine rounds; there are none with --online")

@@ -34,7 +34,7 @@ def ray_grid_shape(stride: int, width: int, height: int) -> tuple[int, int]:
 
 def fits_ssim(stride: int, width: int, height: int) -> bool:
     """Whether ``stride`` casts at least SSIM's 7 x 7 rays on a width x height image."""
-    from jaxloc.sg2loc.scores import SSIM_WINDOW
+    from jaxloc.sg2loc._scores import SSIM_WINDOW
 
     return min(ray_grid_shape(stride, width, height)) >= SSIM_WINDOW
 
@@ -64,7 +64,7 @@ def fitting_strides(args: argparse.Namespace) -> tuple[int, ...]:
     InputError naming the largest stride that fits if one gives fewer than 7 x 7 rays), else the
     paper's, each lowered to the largest stride that fits."""
     from jaxloc.cli._errors import InputError
-    from jaxloc.sg2loc.scores import SSIM_WINDOW
+    from jaxloc.sg2loc._scores import SSIM_WINDOW
 
     given = () if args.strides is None else tuple(args.strides)
     largest = largest_fitting_stride(args.width, args.height, max(PAPER_STRIDES + given))
@@ -99,11 +99,15 @@ def run_demo(args: argparse.Namespace) -> int:
 
     from jaxloc.camera import stride_grid
     from jaxloc.metrics import summarize, yaw_pose_errors
-    from jaxloc.sg2loc import Sequence, SG2LocConfig, localize
+    from jaxloc.sg2loc import (
+        FrameSequence,
+        KLDConfig,
+        SG2LocConfig,
+        localize,
+        render_batch,
+        warm_up,
+    )
     from jaxloc.sg2loc.figures import plot_rounds
-    from jaxloc.sg2loc.localization import warm_up
-    from jaxloc.sg2loc.rendering import render_batch
-    from jaxloc.sg2loc.resampling import KLDConfig
     from jaxloc.synthetic import indoor
 
     strides = fitting_strides(args)
@@ -127,7 +131,7 @@ def run_demo(args: argparse.Namespace) -> int:
     # (make_episode's own two steps, split around it)
     sensor = episode_config.sensor
     patch_shape = (sensor.patch_rows, sensor.patch_cols)
-    frame_shapes = Sequence.zeros(
+    frame_shapes = FrameSequence.zeros(
         sensor.camera(), args.frames, patch_shape, room.embeddings.shape[1]
     )
     warm_up(key, scene, frame_shapes, sg2loc_config, progress=True)

@@ -5,7 +5,7 @@ A :class:`FrameSource` is what a reader of a camera recording returns (a ScanNet
 sequence, :mod:`jaxloc.io.rscan_sequence`): the colour and depth intrinsics and the frame numbers,
 and a loader of one frame at a time, so a long recording is never held in memory.
 :func:`jaxloc.io.camera_sequence.read_camera_sequence` turns the frames into a
-:class:`~jaxloc.sg2loc.sequence.Sequence`.
+:class:`~jaxloc.sg2loc.FrameSequence`.
 
 Conventions: ``T_world_cam`` is a 4x4 camera-to-world matrix (OpenCV camera frame, metres), the
 convention of all three datasets; intrinsics are 4x4 matrices ``[fx 0 cx 0; 0 fy cy 0; 0 0 1 0;

@@ -1,4 +1,4 @@
-"""A query :class:`~jaxloc.sg2loc.sequence.Sequence` from a camera recording on disk (with the
+"""A query :class:`~jaxloc.sg2loc.FrameSequence` from a camera recording on disk (with the
 side files named as files: :func:`jaxloc.io.open_camera_recording`).
 
 Three layouts, detected (or named with ``format=``):
@@ -53,7 +53,7 @@ from jaxloc.io.rscan_sequence import open_rscan_sequence, sequence_folder
 from jaxloc.io.scannet_export import is_scannet_export, open_scannet_export
 from jaxloc.io.scannet_sens import open_sens
 from jaxloc.io.scene_map import ClassEmbeddings
-from jaxloc.sg2loc.sequence import Sequence
+from jaxloc.sg2loc import FrameSequence
 
 #: The camera recording layouts read (and detected): the ``format=`` of the camera openers.
 CAMERA_FORMATS = ("scannet-export", "sens", "3rscan")
@@ -73,7 +73,7 @@ class CameraRecording(NamedTuple):
         camera_native: the colour camera at the images' own size.
     """
 
-    sequence: Sequence
+    sequence: FrameSequence
     format: str
     frame_ids: tuple[int, ...]
     timestamps: np.ndarray | None
@@ -361,7 +361,7 @@ def read_camera_sequence(
     motion = np.zeros((0, 4))
     if len(kept) > 1:
         motion = np.asarray(consecutive_ego_motions(poses), np.float64)
-    sequence = Sequence(
+    sequence = FrameSequence(
         camera,
         np.stack(embeddings),
         motion,

@@ -1,71 +1,108 @@
 """SG2Loc: sequential visual localization of a camera in a 3D scene graph with a particle filter.
 
 Entry point: :func:`localize` (with :class:`SG2LocConfig`, returning :class:`SG2LocResult`), the
-paper's coarse-to-fine rounds over a query :class:`Sequence`. The stages, one module each:
+paper's coarse-to-fine rounds over a query :class:`FrameSequence`; :func:`warm_up` compiles its
+programs ahead. The same configuration drives the streaming filter (:mod:`~jaxloc.sg2loc.online`:
+``init`` / ``update``, one frame at a time).
 
-* :mod:`~jaxloc.sg2loc.sequence`: the query sequence (frames, camera, ego-motion, ground truth).
-* :mod:`~jaxloc.sg2loc.rendering`: each particle's view of the map (ray casting into patches).
-* :mod:`~jaxloc.sg2loc.particles`: the padded particle state, initialisation, motion model.
-* :mod:`~jaxloc.sg2loc.scores`: semantic, depth and SSIM colour scores and the likelihood.
-* :mod:`~jaxloc.sg2loc.resampling`: stratified / systematic resampling and KLD-sampling.
-* :mod:`~jaxloc.sg2loc.filter`: one jitted filter step and passes over a sequence.
-* :mod:`~jaxloc.sg2loc.verdict`: whether a frame is localized (computed inside the step).
-* :mod:`~jaxloc.sg2loc.online`: the filter on a stream of frames (``init`` / ``update``).
-* :mod:`~jaxloc.sg2loc.localization`: the coarse-to-fine rounds (:func:`localize`).
-* :mod:`~jaxloc.sg2loc.refine`: Gauss-Newton / Levenberg-Marquardt 6-DoF pose refinement.
-* :mod:`~jaxloc.sg2loc.learn`: learning the likelihood parameters by gradient.
-* :mod:`~jaxloc.sg2loc.retrieval`: sequential scene retrieval in a database of scene graphs.
-* :mod:`~jaxloc.sg2loc.sharded`: particles and passes split over several devices.
-* :mod:`~jaxloc.sg2loc.figures`: the particles of every round over the map's floor plan.
+One filter step, BlackJAX-style: :func:`step` ``(key, state, frame, scene, config) -> (state,
+info)`` on a :class:`ParticleState`, a :class:`Frame` and a :class:`StepConfig` (one round's
+configuration, which :func:`localize` and the streaming filter derive from their
+:class:`SG2LocConfig`), and :func:`run_pass` (a ``lax.scan`` of it over the frames). What each
+particle sees: :func:`render`, :func:`render_batch`. The scores' settings:
+:class:`ObservationConfig`; KLD-sampling: :class:`KLDConfig`; the per-frame verdict:
+:class:`VerdictConfig`, :class:`Verdict`.
+
+Around them: :mod:`~jaxloc.sg2loc.refine` (6-DoF pose refinement), :mod:`~jaxloc.sg2loc.learn`
+(learning the likelihood parameters), :mod:`~jaxloc.sg2loc.retrieval` (scene retrieval),
+:mod:`~jaxloc.sg2loc.sharded` (particles split over devices) and :mod:`~jaxloc.sg2loc.figures`.
+The stages live in private modules (``_sequence``, ``_rendering``, ``_particles``, ``_scores``,
+``_resampling``, ``_verdict``, ``_filter``, ``_localization``).
 """
 
 from typing import TYPE_CHECKING
 
-from jaxloc._lazy import lazy_exports
+from jaxloc._lazy import lazy_exports, renamed_modules
 
-__getattr__, __dir__ = lazy_exports(__name__, __file__)
+__all__ = [
+    "PAPER_HEIGHTS",
+    "Frame",
+    "FrameSequence",
+    "KLDConfig",
+    "ObservationConfig",
+    "ParticleState",
+    "Region",
+    "Render",
+    "SG2LocConfig",
+    "SG2LocResult",
+    "StepConfig",
+    "StepInfo",
+    "Verdict",
+    "VerdictConfig",
+    "carry_back",
+    "default_verdict",
+    "figures",
+    "frames_on_grid",
+    "learn",
+    "localize",
+    "online",
+    "refine",
+    "render",
+    "render_batch",
+    "retrieval",
+    "run_pass",
+    "sharded",
+    "step",
+    "warm_up",
+]
 
-if TYPE_CHECKING:  # the lazy names, for type checkers and the API reference
-    from jaxloc.sg2loc import (
-        filter,
-        learn,
-        online,
-        particles,
-        refine,
-        resampling,
-        retrieval,
-        scores,
-        sharded,
-        verdict,
+if TYPE_CHECKING:  # where each public name comes from (jaxloc._lazy imports it on first use)
+    from jaxloc.sg2loc import figures, learn, online, refine, retrieval, sharded
+    from jaxloc.sg2loc._filter import (
+        Frame,
+        Region,
+        StepConfig,
+        StepInfo,
+        frames_on_grid,
+        run_pass,
+        step,
     )
-    from jaxloc.sg2loc.localization import (
+    from jaxloc.sg2loc._localization import (
         SG2LocConfig,
         SG2LocResult,
         carry_back,
         localize,
         warm_up,
     )
-    from jaxloc.sg2loc.rendering import Render, render, render_batch
-    from jaxloc.sg2loc.sequence import Sequence
+    from jaxloc.sg2loc._particles import PAPER_HEIGHTS, ParticleState
+    from jaxloc.sg2loc._rendering import Render, render, render_batch
+    from jaxloc.sg2loc._resampling import KLDConfig
+    from jaxloc.sg2loc._scores import ObservationConfig
+    from jaxloc.sg2loc._sequence import FrameSequence
+    from jaxloc.sg2loc._verdict import Verdict, VerdictConfig, default_verdict
 
-__all__ = [
-    "Render",
-    "SG2LocConfig",
-    "SG2LocResult",
-    "Sequence",
-    "carry_back",
-    "filter",
-    "learn",
-    "localize",
-    "online",
-    "particles",
-    "refine",
-    "render",
-    "render_batch",
-    "resampling",
-    "retrieval",
-    "scores",
-    "sharded",
-    "verdict",
-    "warm_up",
-]
+#: The stage modules of jaxloc 0.2, private now: ``import jaxloc.sg2loc.filter`` and
+#: ``jaxloc.sg2loc.filter`` still work, with a DeprecationWarning, for one more release.
+_RENAMED_MODULES = {
+    name: f"_{name}"
+    for name in (
+        "filter",
+        "localization",
+        "particles",
+        "rendering",
+        "resampling",
+        "scores",
+        "sequence",
+        "verdict",
+    )
+}
+renamed_modules(__name__, _RENAMED_MODULES)
+__getattr__, __dir__ = lazy_exports(
+    __name__,
+    __file__,
+    {
+        __name__: [f"{old}={new}" for old, new in _RENAMED_MODULES.items()],
+        "jaxloc.sg2loc._sequence": ("Sequence=FrameSequence",),
+    },
+    {"Sequence": "jaxloc.sg2loc.FrameSequence"},
+)

@@ -9,7 +9,7 @@ import numpy as np
 
 from jaxloc.figures import draw_floor_plan, floor_plan
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc.localization import SG2LocResult
+from jaxloc.sg2loc._localization import SG2LocResult
 
 
 def plot_rounds(

@@ -8,20 +8,21 @@ BlackJAX style, for a camera that delivers frames one at a time::
         if est.localized:
             act_on(est.pose)                                    # (x, y, z, yaw), world frame
 
-The machinery is :func:`jaxloc.sg2loc.filter.step`, the same step every round of
-:func:`~jaxloc.sg2loc.localize` runs, on one ray grid (``OnlineConfig.stride``, default 20, the
-coarse round's). Without coarse-to-fine rounds (which re-run past frames) the stream is one
-round: ``init(key)`` and ``update`` over frames 0..T-1 give the particles and estimates of
-``localize(key, ..., SG2LocConfig(strides=(stride,)))`` frame by frame, as long as no
-relocalization happens (``tests/test_online.py``). Each frame costs one call of one compiled
+The machinery is :func:`jaxloc.sg2loc.step`, the same step every round of
+:func:`~jaxloc.sg2loc.localize` runs, with the same :class:`~jaxloc.sg2loc.SG2LocConfig`: the
+stream runs round 0's settings on every frame (``strides[0]``, default 20). Without
+coarse-to-fine rounds (which re-run past frames) the stream is one round: ``init(key, ...,
+config)`` and ``update`` over frames 0..T-1 give the particles and estimates of ``localize(key,
+..., config)`` with ``strides=(strides[0],)``, frame by frame, as long as no relocalization
+happens (``tests/test_online.py``). Each frame costs one call of one compiled
 program (``update`` is jitted; the state has fixed shapes); giving or leaving out depth or colour
 selects one of at most four programs.
 
-**Relocalization.** The verdict (:mod:`jaxloc.sg2loc.verdict`) is computed every frame. When it
+**Relocalization.** The verdict (:class:`~jaxloc.sg2loc.Verdict`) is computed every frame. When it
 has been False for ``relocalize_after`` consecutive frames (default 5: the reference's injection
 period), ``relocalize_count`` particles (default 2000, the reference's injection size, at most the
 capacity) are replaced by random ones over the whole map's floor (the weakest first, as
-:func:`~jaxloc.sg2loc.particles.inject_uniform` does) and the count starts again. This recovers
+:func:`~jaxloc.sg2loc._particles.inject_uniform` does) and the count starts again. This recovers
 from a filter that converged on a wrong place or lost track (a kidnapped camera): the fresh
 particles are scored on the next frame, and the old cloud keeps its weight where it still
 explains the frames. ``relocalize_after = 0`` turns it off.
@@ -30,6 +31,7 @@ explains the frames. ``relocalize_after = 0`` turns it off.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import NamedTuple
 
 import equinox as eqx
@@ -38,38 +40,23 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from jaxloc.camera import Camera, stride_grid
-from jaxloc.raycasting.engines import check_engine_name
+from jaxloc.camera import Camera
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc._convert import as_float32, as_int32, finite_nonnegative, shown
-from jaxloc.sg2loc.filter import Frame, Region, StepConfig, check_particle_chunk, grid_pixels, step
-from jaxloc.sg2loc.particles import PAPER_HEIGHTS, ParticleState, init_region, inject_uniform
-from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.scores import ObservationConfig
-from jaxloc.sg2loc.sequence import Sequence
-from jaxloc.sg2loc.verdict import Verdict, VerdictConfig, default_verdict
+from jaxloc.sg2loc._convert import as_float32, as_int32
+from jaxloc.sg2loc._filter import Frame, Region, StepConfig, grid_pixels, step
+from jaxloc.sg2loc._localization import SG2LocConfig, step_config
+from jaxloc.sg2loc._particles import PAPER_HEIGHTS, ParticleState, init_region, inject_uniform
+from jaxloc.sg2loc._resampling import KLDConfig
+from jaxloc.sg2loc._scores import ObservationConfig
+from jaxloc.sg2loc._sequence import FrameSequence
+from jaxloc.sg2loc._verdict import Verdict, VerdictConfig, default_verdict
 
 
 class OnlineConfig(eqx.Module):
-    """Settings of the streaming filter (sizes static, weights and thresholds traced).
-
-    Attributes:
-        capacity: particle buffer size (static; paper 2500).
-        stride: pixel stride of the ray grid (static; the coarse round's 20).
-        patch_shape: (rows, cols) of the patch grid of the embeddings (static; paper 9 x 16).
-        observation, kld: as in :class:`~jaxloc.sg2loc.SG2LocConfig`.
-        verdict: the verdict's thresholds (None: the preset for each frame, with or without
-            depth: :func:`~jaxloc.sg2loc.verdict.default_verdict`).
-        sigma_trans, sigma_rot: motion noise (metres, radians).
-        region: where the particles start and where relocalization puts them (default: the
-            map's floor bounds).
-        heights: (H,) float32 camera heights above the floor of those particles (metres; H
-            static).
-        relocalize_after: frames without the verdict before relocalizing (traced int; 0: never).
-        relocalize_count: particles replaced by random ones then (traced int, clamped to the
-            capacity).
-        engine, particle_chunk: as in :class:`~jaxloc.sg2loc.SG2LocConfig` (static).
-    """
+    """Deprecated (removed in jaxloc 0.4): the streaming filter takes an
+    :class:`~jaxloc.sg2loc.SG2LocConfig` (``stride`` is its ``strides[0]``) and ``patch_shape``
+    is an argument of :func:`init`. Built, it warns; :func:`init` converts it
+    (:meth:`as_sg2loc`)."""
 
     capacity: int = eqx.field(static=True, default=2500)
     stride: int = eqx.field(static=True, default=20)
@@ -87,22 +74,19 @@ class OnlineConfig(eqx.Module):
     particle_chunk: int | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
-        check_engine_name(self.engine)
-        check_particle_chunk(self.particle_chunk)
-        for name in ("capacity", "stride"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"OnlineConfig.{name} must be a positive int, got {value!r}")
-        rows_cols = tuple(self.patch_shape)
-        if len(rows_cols) != 2 or any(not isinstance(n, int) or n < 1 for n in rows_cols):
-            raise ValueError(f"patch_shape must be two positive ints, got {self.patch_shape!r}")
-        heights = self.heights
-        if heights.ndim != 1 or heights.shape[0] < 1 or not finite_nonnegative(heights):
-            raise ValueError(f"heights must be finite heights >= 0 m, got {shown(heights)}")
-        for name in ("relocalize_after", "relocalize_count"):
-            value = getattr(self, name)
-            if not isinstance(value, jax.core.Tracer) and int(value) < 0:
-                raise ValueError(f"OnlineConfig.{name} must be >= 0, got {int(value)}")
+        warnings.warn(
+            "jaxloc.sg2loc.online.OnlineConfig is deprecated and will be removed in jaxloc 0.4; "
+            "use jaxloc.sg2loc.SG2LocConfig(strides=(stride,), ...) and "
+            "online.init(..., patch_shape=)",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+
+    def as_sg2loc(self) -> tuple[SG2LocConfig, tuple[int, int]]:
+        """The :class:`~jaxloc.sg2loc.SG2LocConfig` and patch shape it stands for."""
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        stride, patch_shape = fields.pop("stride"), tuple(fields.pop("patch_shape"))
+        return SG2LocConfig(strides=(stride,), **fields), patch_shape
 
 
 class OnlineState(eqx.Module):
@@ -118,7 +102,7 @@ class OnlineState(eqx.Module):
         pixels: (2, R) int32 the image row and column of each ray of the grid.
         config: the step's configuration (grid, observation model); each frame's observation
             model and thresholds are set by :func:`update` from the inputs given.
-        verdict: the verdict's thresholds given to :func:`init` (None: each frame's preset).
+        verdict: the verdict's thresholds of the configuration (None: each frame's preset).
         relocalize_after, relocalize_count: the relocalization policy (see the module docstring).
     """
 
@@ -143,7 +127,7 @@ class Estimate(NamedTuple):
         localized: bool, act on ``pose`` only when True.
         spread: (4,) float32 the particles' spread (``verdict.spread``).
         mean: (4,) float32 the weighted mean pose.
-        verdict: the frame's :class:`~jaxloc.sg2loc.verdict.Verdict`.
+        verdict: the frame's :class:`~jaxloc.sg2loc.Verdict`.
         num_particles: int32 particles kept by KLD-sampling.
         relocalized: bool, random particles were injected over the map after this frame.
         motion_valid: bool, the ego-motion was finite (else the particles only diffused).
@@ -167,7 +151,12 @@ def _round_keys(key: Array) -> tuple[Array, Array]:
 
 
 def init(
-    key: Array, scene: SceneGraph, camera: Camera, config: OnlineConfig | None = None
+    key: Array,
+    scene: SceneGraph,
+    camera: Camera,
+    config: SG2LocConfig | OnlineConfig | None = None,
+    *,
+    patch_shape: tuple[int, int] = (9, 16),
 ) -> OnlineState:
     """The stream's first state: particles spread over the map's floor (or ``config.region``).
 
@@ -175,29 +164,28 @@ def init(
         key: PRNG key; the same key and frames give the same estimates.
         scene: the map.
         camera: the query camera (its image size fixes the ray grid).
-        config: :class:`OnlineConfig` (paper settings at the coarse stride).
+        config: :class:`~jaxloc.sg2loc.SG2LocConfig` (paper settings); the stream runs round
+            0's settings: the ray grid of every ``strides[0]``-th pixel.
+        patch_shape: (rows, cols) of the frames' patch embeddings (static; paper 9 x 16).
+
+    Raises:
+        TypeError: ``scene`` or ``camera`` of the wrong type.
+        ValueError: a grid too coarse for the colour score (naming
+            ``SG2LocConfig(strides=)``), or a bad ``patch_shape``.
     """
-    config = OnlineConfig() if config is None else config
+    if isinstance(config, OnlineConfig):
+        config, patch_shape = config.as_sg2loc()
+    config = SG2LocConfig() if config is None else config
     if not isinstance(scene, SceneGraph):
         raise TypeError(f"scene must be a jaxloc.SceneGraph, got {type(scene).__name__}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera must be a jaxloc.Camera, got {type(camera).__name__}")
-    rows, cols = config.patch_shape
+    patch_shape = tuple(patch_shape)
+    if len(patch_shape) != 2 or any(not isinstance(n, int) or n < 1 for n in patch_shape):
+        raise ValueError(f"patch_shape must be two positive ints, got {patch_shape!r}")
     region = Region.of_scene(scene) if config.region is None else config.region
-    step_config = StepConfig(
-        camera=camera,
-        grid=stride_grid(camera, config.stride, rows, cols),
-        observation=config.observation,
-        kld=config.kld,
-        region=region,
-        sigma_trans=config.sigma_trans,
-        sigma_rot=config.sigma_rot,
-        inject_count=0,
-        heights=config.heights,
-        engine=config.engine,
-        particle_chunk=config.particle_chunk,
-    )
-    pixels = jnp.asarray(np.stack(grid_pixels(camera, step_config.grid)), jnp.int32)
+    round_config = step_config(config, camera, config.strides[0], patch_shape, region)
+    pixels = jnp.asarray(np.stack(grid_pixels(camera, round_config.grid)), jnp.int32)
     key_init, key_run = _round_keys(key)
     particles = init_region(
         key_init, config.capacity, region.lo, region.hi, region.floor_z, heights=config.heights
@@ -210,7 +198,7 @@ def init(
         scene=scene,
         camera=camera,
         pixels=pixels,
-        config=step_config,
+        config=round_config,
         verdict=config.verdict,
         relocalize_after=config.relocalize_after,
         relocalize_count=config.relocalize_count,
@@ -350,8 +338,8 @@ def _update(state, observation, patches, motion, depth, rgb, tilt):
 def filter_sequence(
     key: Array,
     scene: SceneGraph,
-    sequence: Sequence,
-    config: OnlineConfig | None = None,
+    sequence: FrameSequence,
+    config: SG2LocConfig | OnlineConfig | None = None,
     *,
     progress=None,
 ) -> Estimate:
@@ -361,20 +349,20 @@ def filter_sequence(
     Args:
         key: PRNG key (as for :func:`init`).
         scene: the map.
-        sequence: the frames (:class:`~jaxloc.sg2loc.sequence.Sequence`; its depth and colour are
+        sequence: the frames (:class:`~jaxloc.sg2loc.FrameSequence`; its depth and colour are
             used when present and ``config.observation`` uses them).
-        config: :class:`OnlineConfig`; its ``patch_shape`` is taken from the sequence.
+        config: as for :func:`init` (the patch shape is the sequence's).
         progress: optional callable ``progress(t)`` after each frame (e.g. a progress bar's
             ``update``).
 
     Returns:
         The :class:`Estimate` of every frame, stacked on a leading (T,) axis (host arrays).
     """
-    if not isinstance(sequence, Sequence):
-        raise TypeError(f"sequence must be a jaxloc.Sequence, got {type(sequence).__name__}")
-    config = OnlineConfig() if config is None else config
-    config = dataclasses.replace(config, patch_shape=tuple(sequence.patch_shape))
-    state = init(key, scene, sequence.camera, config)
+    if not isinstance(sequence, FrameSequence):
+        raise TypeError(f"sequence must be a jaxloc.FrameSequence, got {type(sequence).__name__}")
+    if isinstance(config, OnlineConfig):
+        config, _ = config.as_sg2loc()
+    state = init(key, scene, sequence.camera, config, patch_shape=tuple(sequence.patch_shape))
     estimates = []
     for t in range(sequence.num_frames):
         motion = np.zeros(4, np.float32) if t == 0 else sequence.ego_motion[t - 1]

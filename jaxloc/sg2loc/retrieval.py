@@ -36,7 +36,6 @@ MIN_PATCH_NORM = 1e-12
 BYTES_PER_VALUE = 4
 
 
-
 class Gallery(eqx.Module):
     """Candidate scene graphs' object embeddings, stacked and padded (S scenes, O object slots).
 
@@ -264,7 +263,7 @@ def retrieve(patch_embeddings: Array, gallery: Gallery) -> Retrieval:
 
     Args:
         patch_embeddings: (T, ..., d) patch embeddings of T frames (e.g. a
-            :class:`jaxloc.Sequence`'s (T, rows, cols, d)); any norm, compared by cosine;
+            :class:`jaxloc.FrameSequence`'s (T, rows, cols, d)); any norm, compared by cosine;
             patches with norm < :data:`MIN_PATCH_NORM` are missing (see the module docstring).
         gallery: the candidates.
 

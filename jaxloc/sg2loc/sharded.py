@@ -1,14 +1,14 @@
 """The particles of one filter, and independent filter passes, split over several devices.
 
-:func:`shard_particles` splits a padded :class:`~jaxloc.sg2loc.particles.ParticleState` along its
+:func:`shard_particles` splits a padded :class:`~jaxloc.sg2loc.ParticleState` along its
 capacity ``N`` (``N`` divisible by the device count); :func:`sharded_step` /
-:func:`sharded_run_pass` are :func:`jaxloc.sg2loc.filter.step` /
-:func:`~jaxloc.sg2loc.filter.run_pass` with the state pinned to that sharding (the map, the frames
+:func:`sharded_run_pass` are :func:`jaxloc.sg2loc.step` /
+:func:`~jaxloc.sg2loc.run_pass` with the state pinned to that sharding (the map, the frames
 and the configuration are replicated). Rendering and scoring, the bulk of the work, are per
 particle: each device renders and scores its own shard under ``jax.shard_map``
 (``StepConfig.mesh``), so it calls the nearest-hit engine (Embree, Warp or the JAX traversal) on its
 own rays. :func:`sharded_run_passes` vmaps
-:func:`~jaxloc.sg2loc.filter.run_pass` over a leading batch axis split over the devices. What
+:func:`~jaxloc.sg2loc.run_pass` over a leading batch axis split over the devices. What
 equals a single-device run, and to what precision: :mod:`jaxloc.sharding`.
 """
 
@@ -22,8 +22,8 @@ from jax import Array
 from jax.sharding import Mesh, PartitionSpec
 
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc.filter import Frame, StepConfig, StepInfo, run_pass, step
-from jaxloc.sg2loc.particles import ParticleState
+from jaxloc.sg2loc._filter import Frame, StepConfig, StepInfo, run_pass, step
+from jaxloc.sg2loc._particles import ParticleState
 from jaxloc.sharding import AXIS, check_divisible, pin_split, place, split_sharding
 
 
@@ -48,7 +48,7 @@ def sharded_step(
     config: StepConfig,
     mesh: Mesh,
 ) -> tuple[ParticleState, StepInfo]:
-    """:func:`jaxloc.sg2loc.filter.step` with the particle state split over ``mesh`` in and out.
+    """:func:`jaxloc.sg2loc.step` with the particle state split over ``mesh`` in and out.
 
     Pass a state from :func:`shard_particles`; ``frame``, ``scene`` and ``config`` may be host
     arrays or replicated ones (:func:`~jaxloc.sharding.replicate`).
@@ -67,7 +67,7 @@ def sharded_run_pass(
     config: StepConfig,
     mesh: Mesh,
 ) -> tuple[ParticleState, StepInfo]:
-    """:func:`jaxloc.sg2loc.filter.run_pass` (``lax.scan`` over T frames) with the particles split
+    """:func:`jaxloc.sg2loc.run_pass` (``lax.scan`` over T frames) with the particles split
     over ``mesh``; same keys, same result as the single-device pass (see :mod:`jaxloc.sharding`)."""
     config = dataclasses.replace(config, mesh=mesh)
     state, info = run_pass(key, pin_split(state, mesh), frames, scene, config)

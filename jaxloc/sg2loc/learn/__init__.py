@@ -3,7 +3,7 @@
 Parameters. :class:`LikelihoodParams` holds ``log sigma``, ``log lambda_depth`` and
 ``log lambda_color`` (unconstrained floats; the values are their exponentials, so they stay
 positive). :meth:`LikelihoodParams.to_config` maps them into an
-:class:`~jaxloc.sg2loc.scores.ObservationConfig`, clipping the logs to ``[-LOG_BOUND, LOG_BOUND]``
+:class:`~jaxloc.sg2loc.ObservationConfig`, clipping the logs to ``[-LOG_BOUND, LOG_BOUND]``
 so that eq. (2) stays finite in float32 (``(S_max - S)^2 / (2 sigma^2)`` cannot overflow). The
 motion noise (``sigma_trans``, ``sigma_rot``) is not learned: the loss below holds the particles
 fixed, so it does not depend on the motion noise (see "Why not through resampling").
@@ -15,7 +15,7 @@ half uniformly over the room's floor at camera heights (round 0's spread). The p
 through the window by the measured (noisy) ego-motion without noise, which is the filter's
 prediction step with the noise switched off. Their weights after the window are the product of the
 ``K`` frames' likelihoods, i.e. ``log w = log_softmax(sum_k log L_k)`` with ``log L_k`` eq. (2) of
-the scores the filter computes (:func:`jaxloc.sg2loc.scores.particle_log_likelihood` on the
+the scores the filter computes (:func:`jaxloc.sg2loc._scores.particle_log_likelihood` on the
 particles' rendered views). That is the filter's posterior over this particle set: sequential
 importance sampling without resampling. The default loss (``"nll"``) is the negative log density of
 the true last-frame pose under the weighted particle mixture with a Gaussian kernel of

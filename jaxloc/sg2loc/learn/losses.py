@@ -7,12 +7,12 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from jaxloc.sg2loc.learn.params import LikelihoodParams, LossConfig
-from jaxloc.sg2loc.learn.windows import Windows
-from jaxloc.sg2loc.scores import (
+from jaxloc.sg2loc._scores import (
     ObservationConfig,
     log_likelihood,
 )
+from jaxloc.sg2loc.learn.params import LikelihoodParams, LossConfig
+from jaxloc.sg2loc.learn.windows import Windows
 
 
 def window_log_weights(params: LikelihoodParams, base: ObservationConfig, window: Windows) -> Array:
@@ -30,7 +30,7 @@ def prefix_log_weights(params: LikelihoodParams, base: ObservationConfig, window
     Row k is the log-softmax of the eq. (2) log-likelihoods summed over the first k + 1 frames,
     over the valid particles (``-inf`` for invalid ones). When no valid particle has a finite
     log-likelihood the weights are uniform over the valid particles (as
-    :func:`jaxloc.sg2loc.particles.update_weights` does), and over all N when none is valid (such a
+    :func:`jaxloc.sg2loc._particles.update_weights` does), and over all N when none is valid (such a
     window carries no information; its loss is constant). Values and gradients stay finite.
     """
     config = params.to_config(base)

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from jaxloc.sg2loc.scores import (
+from jaxloc.sg2loc._scores import (
     ObservationConfig,
 )
 

@@ -13,12 +13,12 @@ import numpy as np
 import optax
 from jax import Array
 
+from jaxloc.sg2loc._scores import (
+    ObservationConfig,
+)
 from jaxloc.sg2loc.learn.losses import batch_loss, expected_position_error
 from jaxloc.sg2loc.learn.params import LikelihoodParams, LossConfig
 from jaxloc.sg2loc.learn.windows import Windows
-from jaxloc.sg2loc.scores import (
-    ObservationConfig,
-)
 
 
 class TrainState(NamedTuple):

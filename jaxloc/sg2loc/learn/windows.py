@@ -13,15 +13,15 @@ from jax import Array
 from jaxloc.camera import Camera, RayGrid, stride_grid
 from jaxloc.geometry import compose_yaw, wrap_angle
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc.filter import Frame, Region, frames_on_grid
-from jaxloc.sg2loc.rendering import render_batch
-from jaxloc.sg2loc.scores import (
+from jaxloc.sg2loc._filter import Frame, Region, frames_on_grid
+from jaxloc.sg2loc._rendering import render_batch
+from jaxloc.sg2loc._scores import (
     ObservationConfig,
     Scores,
     match_patches,
     particle_log_likelihood,
 )
-from jaxloc.sg2loc.sequence import Sequence
+from jaxloc.sg2loc._sequence import FrameSequence
 
 #: Half-width (metres) of the box around a window's first true pose of its local particles.
 LOCAL_HALF_WIDTH = 0.4
@@ -122,7 +122,7 @@ def score_particles(
     """Render ``poses`` (N, 4) on ``grid`` and score them against ``frame`` (as the filter does).
 
     ``engine`` (static) is the nearest-hit engine of the rendering (:func:`jaxloc.raycast`).
-    Returns :class:`~jaxloc.sg2loc.scores.Scores` with (N,) float32 fields.
+    Returns :class:`~jaxloc.sg2loc._scores.Scores` with (N,) float32 fields.
     """
     views = render_batch(
         scene, poses, camera, grid, frame.tilt, engine=engine, differentiable=False
@@ -158,7 +158,7 @@ def score_window(
         scene: the map.
         camera: the query camera.
         grid: the ray grid the scores use.
-        frames: the window's K frames (stacked :class:`~jaxloc.sg2loc.filter.Frame`, sampled on
+        frames: the window's K frames (stacked :class:`~jaxloc.sg2loc.Frame`, sampled on
             ``grid``).
         poses_gt: (K, 4) true poses at those frames.
         region: the room's floor region.
@@ -200,7 +200,7 @@ def _window(scores: Scores, poses: Array, poses_gt: Array, valid: Array) -> Wind
 def sequence_windows(
     key: Array,
     scene: SceneGraph,
-    sequence: Sequence,
+    sequence: FrameSequence,
     poses_gt: np.ndarray,
     grid: RayGrid,
     starts: tuple[int, ...],
@@ -220,7 +220,7 @@ def sequence_windows(
         starts: first frame of each window; each needs ``start + window_length <= T``.
         window_length: K frames per window (static).
         num_particles: N particles per window (static).
-        observation: score variants (default :class:`~jaxloc.sg2loc.scores.ObservationConfig`).
+        observation: score variants (default :class:`~jaxloc.sg2loc.ObservationConfig`).
         local_half_width: half-width (metres) of the box around the window's first true pose
             that the local half of the particles is drawn from (:func:`window_particles`).
         local_yaw_half_range: yaw half-range (radians) of that box.
@@ -275,7 +275,7 @@ def score_particle_set(
 
     Args:
         scene: the map; camera, grid: the query camera and the ray grid the scores use.
-        frame: one :class:`~jaxloc.sg2loc.filter.Frame` sampled on ``grid``.
+        frame: one :class:`~jaxloc.sg2loc.Frame` sampled on ``grid``.
         poses: (N, 4) particle poses ``(x, y, z, yaw)`` (world frame); rows that are not
             ``valid`` are ignored (they may be non-finite).
         valid: (N,) bool, which particles count.
@@ -292,7 +292,7 @@ def score_particle_set(
 
 def filter_windows(
     scene: SceneGraph,
-    sequence: Sequence,
+    sequence: FrameSequence,
     poses_gt: Array,
     particles: Array,
     particle_weights: Array,
@@ -316,7 +316,7 @@ def filter_windows(
         particle_weights: (R, T, N) ``SG2LocResult.particle_weights``.
         strides: the R ray strides of the run (``SG2LocConfig.strides``).
         observation: score variants (default
-            :class:`~jaxloc.sg2loc.scores.ObservationConfig`); use the run's (``use_depth`` /
+            :class:`~jaxloc.sg2loc.ObservationConfig`); use the run's (``use_depth`` /
             ``use_color`` as it used them).
         engine: nearest-hit engine of the rendering (:func:`jaxloc.raycast`).
     """

@@ -12,9 +12,9 @@ from jax import Array
 from jaxloc.camera import Camera, stride_grid
 from jaxloc.geometry import uncompose_yaw, yaw_pose_to_se3
 from jaxloc.scene import SceneGraph
+from jaxloc.sg2loc._sequence import FrameSequence
 from jaxloc.sg2loc.refine.config import Observations, RefineConfig, RefineResult
 from jaxloc.sg2loc.refine.solve import refine_pose_jit
-from jaxloc.sg2loc.sequence import Sequence
 
 
 def frame_poses_from_last(yaw_pose_last: Array, ego_motion: Array, tilt: Array) -> jaxlie.SE3:
@@ -204,7 +204,7 @@ def _observations(
 
 def refine(
     scene: SceneGraph,
-    sequence: Sequence,
+    sequence: FrameSequence,
     yaw_pose: Array,
     config: RefineConfig | None = None,
     *,
@@ -235,8 +235,8 @@ def refine(
     config = RefineConfig() if config is None else config
     if not isinstance(scene, SceneGraph):
         raise TypeError(f"scene must be a jaxloc.SceneGraph, got {type(scene).__name__}")
-    if not isinstance(sequence, Sequence):
-        raise TypeError(f"sequence must be a jaxloc.Sequence, got {type(sequence).__name__}")
+    if not isinstance(sequence, FrameSequence):
+        raise TypeError(f"sequence must be a jaxloc.FrameSequence, got {type(sequence).__name__}")
     yaw_pose = np.asarray(yaw_pose, np.float32)
     if yaw_pose.shape != (4,) or not np.all(np.isfinite(yaw_pose)):
         raise ValueError(f"yaw_pose must be a finite (4,) (x, y, z, yaw), got {yaw_pose!r}")

@@ -11,7 +11,7 @@ from scipy import ndimage
 from jaxloc.camera import Camera, stride_grid
 from jaxloc.geometry import consecutive_ego_motions
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc.rendering import render
+from jaxloc.sg2loc import render
 
 
 def render_views(

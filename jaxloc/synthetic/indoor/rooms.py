@@ -10,7 +10,7 @@ import numpy as np
 import trimesh
 
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc.sequence import Sequence
+from jaxloc.sg2loc import FrameSequence
 from jaxloc.synthetic.indoor import frames, layout
 from jaxloc.synthetic.indoor.config import (
     ChangeConfig,
@@ -255,7 +255,7 @@ class Episode:
         room: the map room (before changes); :attr:`scene` is its scene graph.
         query_room: the changed room the frames were rendered from.
         changes: which map objects were moved or removed.
-        sequence: the observations (:class:`jaxloc.Sequence`).
+        sequence: the observations (:class:`jaxloc.FrameSequence`).
         poses_gt: (T, 4) float32 true camera poses (x, y, z, yaw).
         patch_objects: (T, rows, cols) int32 the map object dominating each patch (-1: none).
         confused: (T, rows, cols) bool, patches whose embedding came from another object.
@@ -268,7 +268,7 @@ class Episode:
     room: Room
     query_room: Room
     changes: SceneChanges
-    sequence: Sequence
+    sequence: FrameSequence
     poses_gt: np.ndarray
     patch_objects: np.ndarray
     confused: np.ndarray
@@ -321,7 +321,7 @@ def episode_in_room(
     embeddings, confused = frames.patch_embeddings(
         sensor_rng, dominant, room.embeddings, s.confusion_rate, s.cosine_range
     )
-    sequence = Sequence(
+    sequence = FrameSequence(
         camera,
         embeddings,
         frames.noisy_ego_motion(sensor_rng, poses, s.ego_translation_sigma, s.ego_yaw_sigma),

@@ -38,8 +38,8 @@ from jax import Array
 
 from jaxloc.geometry import wrap_angle
 from jaxloc.sg2loc._convert import as_float32
-from jaxloc.sg2loc.particles import ParticleState, effective_sample_size, normalized_weights
-from jaxloc.sg2loc.scores import (
+from jaxloc.sg2loc._particles import ParticleState, effective_sample_size, normalized_weights
+from jaxloc.sg2loc._scores import (
     COLOR_MAX,
     DEPTH_MAX,
     ObservationConfig,
@@ -161,8 +161,8 @@ def judge(
 
     Args:
         state: the particles after the Bayes update (before resampling).
-        best: the MLE particle's :class:`~jaxloc.sg2loc.scores.Scores`.
-        match: the frame's :class:`~jaxloc.sg2loc.scores.PatchMatch`.
+        best: the MLE particle's :class:`~jaxloc.sg2loc._scores.Scores`.
+        match: the frame's :class:`~jaxloc.sg2loc._scores.PatchMatch`.
         observation: the observation model the scores came from (which terms, which variants).
         config: the thresholds.
         degenerate: bool, the update's weights fell back to uniform (never localized).

@@ -22,7 +22,7 @@ def _as_finite(name: str, value, ndim: int, dtype=np.float32) -> np.ndarray:
     return array
 
 
-class Sequence(eqx.Module):
+class FrameSequence(eqx.Module):
     """A query sequence of T frames, validated on construction (host arrays, float32).
 
     Attributes:
@@ -106,9 +106,9 @@ class Sequence(eqx.Module):
         *,
         depth: bool = True,
         rgb: bool = True,
-    ) -> Sequence:
+    ) -> FrameSequence:
         """A sequence of zeros with the shapes a recording of these sizes will have: a stand-in
-        for :func:`jaxloc.sg2loc.localization.warm_up`, which needs only shapes.
+        for :func:`jaxloc.sg2loc.warm_up`, which needs only shapes.
 
         Args:
             camera: the pinhole camera (its width and height size the images).

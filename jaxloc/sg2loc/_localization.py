@@ -6,8 +6,8 @@ later round carries the previous round's last-frame MLE back to the first frame 
 ego-motion, re-initialises the particles in a box around it (half-widths ``box_half_widths``) and
 casts a denser ray grid. The paper's defaults are strides 20, 8, 4 and boxes of 1.6^3 then 0.8^3 m.
 
-A round is one compiled ``lax.scan`` of :func:`~jaxloc.sg2loc.filter.step` over the frames
-(:func:`~jaxloc.sg2loc.filter.run_pass`); later rounds of one stride share their program. With
+A round is one compiled ``lax.scan`` of :func:`~jaxloc.sg2loc.step` over the frames
+(:func:`~jaxloc.sg2loc.run_pass`); later rounds of one stride share their program. With
 ``progress=True`` a host call inside that scan ticks a progress bar after every frame.
 
 :func:`localize` composes with the caller's transformations: it runs inside ``jax.jit`` (key,
@@ -37,13 +37,12 @@ from jax import Array
 from jax.sharding import Mesh
 
 from jaxloc._traced import concrete
-from jaxloc.camera import stride_grid
+from jaxloc.camera import Camera, stride_grid
 from jaxloc.geometry import uncompose_yaw
 from jaxloc.raycasting.engines import check_engine_name
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc._convert import as_float32, as_int32, finite_nonnegative, shown
-from jaxloc.sg2loc._progress import FrameBar
-from jaxloc.sg2loc.filter import (
+from jaxloc.sg2loc._filter import (
     Region,
     StepConfig,
     StepInfo,
@@ -51,11 +50,17 @@ from jaxloc.sg2loc.filter import (
     frames_on_grid,
     run_pass,
 )
-from jaxloc.sg2loc.particles import DEFAULT_BOX_YAW_HALF_RANGE, PAPER_HEIGHTS, init_box, init_region
-from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.scores import ObservationConfig
-from jaxloc.sg2loc.sequence import Sequence
-from jaxloc.sg2loc.verdict import VerdictConfig, default_verdict
+from jaxloc.sg2loc._particles import (
+    DEFAULT_BOX_YAW_HALF_RANGE,
+    PAPER_HEIGHTS,
+    init_box,
+    init_region,
+)
+from jaxloc.sg2loc._progress import FrameBar
+from jaxloc.sg2loc._resampling import KLDConfig
+from jaxloc.sg2loc._scores import ObservationConfig
+from jaxloc.sg2loc._sequence import FrameSequence
+from jaxloc.sg2loc._verdict import VerdictConfig, default_verdict
 from jaxloc.sharding import check_divisible, pin_split
 
 
@@ -85,10 +90,18 @@ class SG2LocConfig(eqx.Module):
         engine: nearest-hit engine of the rendering (static; "auto", "jax", "embree" or "warp",
             see :func:`jaxloc.raycast`).
         particle_chunk: particles rendered together (static; ``StepConfig.particle_chunk``:
-            None sizes chunks to :func:`jaxloc.sg2loc.filter.default_chunk_rays` rays).
+            None sizes chunks to :func:`jaxloc.sg2loc._filter.default_chunk_rays` rays).
         verdict: thresholds of the per-frame verdict
-            (:class:`~jaxloc.sg2loc.verdict.VerdictConfig`; None: the preset for whether the
-            sequence's depth is used, :func:`~jaxloc.sg2loc.verdict.default_verdict`).
+            (:class:`~jaxloc.sg2loc.VerdictConfig`; None: the preset for whether the
+            sequence's depth is used, :func:`~jaxloc.sg2loc.default_verdict`).
+        relocalize_after: the streaming filter (:mod:`~jaxloc.sg2loc.online`) relocalizes after
+            this many consecutive frames without the verdict (int32, traced; 0: never).
+            :func:`localize` does not use it (its later rounds re-initialise instead).
+        relocalize_count: particles the streaming filter then replaces by random ones over the
+            region (int32, traced, clamped to ``capacity``; the reference's 2000).
+
+    The streaming filter (:func:`jaxloc.sg2loc.online.init`) takes the same configuration and
+    runs round 0's settings (``strides[0]``, ``heights``, the region) on every frame.
 
     Concrete values are validated on construction; traced ones (a configuration built inside a
     caller's ``jax.jit`` or ``jax.vmap``) only by shape.
@@ -109,6 +122,8 @@ class SG2LocConfig(eqx.Module):
     engine: str = eqx.field(static=True, default="auto")
     particle_chunk: int | None = eqx.field(static=True, default=None)
     verdict: VerdictConfig | None = None
+    relocalize_after: Array = eqx.field(default=5, converter=as_int32)
+    relocalize_count: Array = eqx.field(default=2000, converter=as_int32)
 
     def __check_init__(self):
         check_engine_name(self.engine)
@@ -129,9 +144,10 @@ class SG2LocConfig(eqx.Module):
             raise ValueError(
                 f"heights must be a non-empty tuple of finite heights >= 0 m, got {shown(heights)}"
             )
-        count = self.inject_count
-        if count.ndim != 0 or (concrete(count) and np.asarray(count) < 0):
-            raise ValueError(f"inject_count must be an int >= 0, got {shown(count)}")
+        for name in ("inject_count", "relocalize_after", "relocalize_count"):
+            count = getattr(self, name)
+            if count.ndim != 0 or (concrete(count) and np.asarray(count) < 0):
+                raise ValueError(f"{name} must be an int >= 0, got {shown(count)}")
 
 
 class SG2LocResult(NamedTuple):
@@ -140,12 +156,12 @@ class SG2LocResult(NamedTuple):
     Attributes:
         poses: (T, 4) the final round's MLE at every frame, (x, y, z, yaw).
         localized: (T,) bool, the final round's verdict at every frame: act on ``poses[t]`` only
-            where it is True (:mod:`jaxloc.sg2loc.verdict`; what it is made of:
+            where it is True (:mod:`jaxloc.sg2loc._verdict`; what it is made of:
             ``info.verdict``).
         round_mle: (R, T, 4) every round's per-frame MLE.
         round_start: (R, 4) the centre each round was initialised around (round 0: NaN).
         num_particles: (R, T) int32 particles after KLD resampling.
-        info: the final round's per-frame :class:`~jaxloc.sg2loc.filter.StepInfo` (scores, flags).
+        info: the final round's per-frame :class:`~jaxloc.sg2loc.StepInfo` (scores, flags).
         particles: (R, T, N, 4) particle poses after each frame's update (before resampling).
         particle_weights: (R, T, N) their normalised weights (0 for inactive slots).
         used_depth, used_color: whether the depth / colour scores were used.
@@ -192,7 +208,7 @@ def _initial_state(key, box, region: Region, heights, capacity: int, mesh: Mesh 
 def _round(key, box, frames, scene, step_config, capacity: int, mesh: Mesh | None, progress):
     """One pass of the filter over ``frames`` (stacked on T), one program: ``(final state,
     per-frame infos stacked on T)``. ``progress``: a progress bar's id, or None (see
-    :func:`~jaxloc.sg2loc.filter.run_pass`)."""
+    :func:`~jaxloc.sg2loc.run_pass`)."""
     key_init, key_run = jax.random.split(key)
     state = _initial_state(key_init, box, step_config.region, step_config.heights, capacity, mesh)
     return run_pass(key_run, state, frames, scene, step_config, progress)
@@ -241,7 +257,7 @@ def _stacked(items: list) -> Any:
 def localize(
     key: Array,
     scene: SceneGraph,
-    sequence: Sequence,
+    sequence: FrameSequence,
     config: SG2LocConfig | None = None,
     *,
     progress: bool = False,
@@ -288,7 +304,7 @@ def localize(
 def warm_up(
     key: Array,
     scene: SceneGraph,
-    sequence: Sequence,
+    sequence: FrameSequence,
     config: SG2LocConfig | None = None,
     *,
     progress: bool = False,
@@ -299,7 +315,7 @@ def warm_up(
     done when they are compiled (its result is None; a failure is its exception).
 
     Only the arguments' shapes, dtypes and static settings matter, not their values: while a
-    recording is still being read, pass a placeholder of its sizes (:meth:`Sequence.zeros`).
+    recording is still being read, pass a placeholder of its sizes (:meth:`FrameSequence.zeros`).
     :func:`localize` with arguments of the same shapes then compiles nothing, even while the
     warm-up is still compiling: it can start at once, and each of its programs waits for the
     warm-up's compilation of it (all of them compile side by side, one thread each).
@@ -312,7 +328,7 @@ def warm_up(
     Args:
         key: a PRNG key of the kind :func:`localize` will get (its value is not used).
         scene: as for :func:`localize`.
-        sequence: as for :func:`localize` (or :meth:`Sequence.zeros` of its sizes).
+        sequence: as for :func:`localize` (or :meth:`FrameSequence.zeros` of its sizes).
         config: as for :func:`localize`.
         progress: as for :func:`localize` (the rounds' programs with the progress bar's host
             call, or without).
@@ -368,12 +384,45 @@ def _all_done(futures: list[Future]) -> Future:
     return done
 
 
+def step_config(
+    config: SG2LocConfig,
+    camera: Camera,
+    stride: int,
+    patch_shape: tuple[int, int],
+    region: Region,
+    observation: ObservationConfig | None = None,
+    verdict: VerdictConfig | None = None,
+    mesh: Mesh | None = None,
+) -> StepConfig:
+    """The :class:`~jaxloc.sg2loc.StepConfig` of one round of ``config`` (offline, or the
+    streaming filter's one round): ``camera`` cast on a grid of every ``stride``-th pixel with
+    ``patch_shape`` patches, particles started and injected over ``region``; ``observation`` and
+    ``verdict`` replace the configuration's (the scores a sequence can have, the verdict's preset
+    for them)."""
+    return StepConfig(
+        camera=camera,
+        grid=stride_grid(camera, stride, *patch_shape),
+        observation=config.observation if observation is None else observation,
+        kld=config.kld,
+        region=region,
+        sigma_trans=config.sigma_trans,
+        sigma_rot=config.sigma_rot,
+        inject_count=config.inject_count,
+        inject_every=config.inject_every,
+        heights=config.heights,
+        engine=config.engine,
+        particle_chunk=config.particle_chunk,
+        verdict=VerdictConfig() if verdict is None else verdict,
+        mesh=mesh,
+    )
+
+
 def _checked(scene, sequence, config: SG2LocConfig, mesh) -> tuple[StepConfig, ...]:
     """:func:`localize`'s argument checks; returns the step configuration of each round."""
     if not isinstance(scene, SceneGraph):
         raise TypeError(f"scene must be a jaxloc.SceneGraph, got {type(scene).__name__}")
-    if not isinstance(sequence, Sequence):
-        raise TypeError(f"sequence must be a jaxloc.Sequence, got {type(sequence).__name__}")
+    if not isinstance(sequence, FrameSequence):
+        raise TypeError(f"sequence must be a jaxloc.FrameSequence, got {type(sequence).__name__}")
     d_seq, d_map = sequence.patch_embeddings.shape[-1], scene.embeddings.shape[1]
     if d_seq != d_map:
         raise ValueError(f"patch embeddings have {d_seq} dims but the map's objects have {d_map}")
@@ -384,21 +433,16 @@ def _checked(scene, sequence, config: SG2LocConfig, mesh) -> tuple[StepConfig, .
     used_color = observation.use_color and sequence.rgb is not None
     observation = dataclasses.replace(observation, use_depth=used_depth, use_color=used_color)
     region = Region.of_scene(scene) if config.region is None else config.region
+    verdict = default_verdict(used_depth) if config.verdict is None else config.verdict
     return tuple(
-        StepConfig(
-            camera=sequence.camera,
-            grid=stride_grid(sequence.camera, stride, *sequence.patch_shape),
+        step_config(
+            config,
+            sequence.camera,
+            stride,
+            sequence.patch_shape,
+            region,
             observation=observation,
-            kld=config.kld,
-            region=region,
-            sigma_trans=config.sigma_trans,
-            sigma_rot=config.sigma_rot,
-            inject_count=config.inject_count,
-            inject_every=config.inject_every,
-            heights=config.heights,
-            engine=config.engine,
-            particle_chunk=config.particle_chunk,
-            verdict=default_verdict(used_depth) if config.verdict is None else config.verdict,
+            verdict=verdict,
             mesh=mesh,
         )
         for stride in config.strides

@@ -1,7 +1,7 @@
 """One jitted SG2Loc filter step, and a whole pass over a sequence with ``lax.scan``.
 
 ``step(key, state, frame, scene, config) -> (state, info)`` composes, for every particle of a
-padded :class:`~jaxloc.sg2loc.particles.ParticleState`: prediction through the ego-motion (eq. 1),
+padded :class:`~jaxloc.sg2loc.ParticleState`: prediction through the ego-motion (eq. 1),
 rendering of the scene graph on the configured ray grid, the semantic / depth / SSIM scores and
 the combined likelihood (eq. 2) in log space, the Bayes update, the estimates (MLE, weighted mean),
 KLD-sampling resampling into the padded buffer and optional random-particle injection. Its parts
@@ -32,8 +32,7 @@ from jaxloc.camera import Camera, RayGrid
 from jaxloc.raycasting.engines import check_engine_name
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc._convert import as_float32, as_int32
-from jaxloc.sg2loc._progress import tick_after
-from jaxloc.sg2loc.particles import (
+from jaxloc.sg2loc._particles import (
     PAPER_HEIGHTS,
     ParticleState,
     inject_uniform,
@@ -42,9 +41,10 @@ from jaxloc.sg2loc.particles import (
     update_weights,
     weighted_mean,
 )
-from jaxloc.sg2loc.rendering import render_batch
-from jaxloc.sg2loc.resampling import KLDConfig, kld_resample
-from jaxloc.sg2loc.scores import (
+from jaxloc.sg2loc._progress import tick_after
+from jaxloc.sg2loc._rendering import render_batch
+from jaxloc.sg2loc._resampling import KLDConfig, kld_resample
+from jaxloc.sg2loc._scores import (
     SSIM_WINDOW,
     ObservationConfig,
     PatchMatch,
@@ -52,8 +52,8 @@ from jaxloc.sg2loc.scores import (
     match_patches,
     particle_log_likelihood,
 )
-from jaxloc.sg2loc.sequence import Sequence
-from jaxloc.sg2loc.verdict import Verdict, VerdictConfig, judge
+from jaxloc.sg2loc._sequence import FrameSequence
+from jaxloc.sg2loc._verdict import Verdict, VerdictConfig, judge
 
 
 class Region(eqx.Module):
@@ -116,7 +116,7 @@ class StepConfig(eqx.Module):
             picks about 2^18 rays a chunk on a CPU and 2^20 on other devices
             (:func:`default_chunk_rays`; at least 1 particle); a value >= the particle capacity
             renders every slot at once (no loop).
-        verdict: the thresholds of the per-frame verdict (:mod:`jaxloc.sg2loc.verdict`).
+        verdict: the thresholds of the per-frame verdict (:mod:`jaxloc.sg2loc._verdict`).
         mesh: a 1-D device mesh the particle buffer is split over (static; set by
             :mod:`jaxloc.sharding` and ``localize(..., mesh=)``). Each device then renders and
             scores its own shard (``jax.shard_map``), calling the engine on its own rays, with its
@@ -207,7 +207,7 @@ class StepInfo(NamedTuple):
         semantic, depth, color, log_likelihood: the MLE particle's scores.
         particles: (N, 4) particle poses after the update (before resampling).
         particle_weights: (N,) their normalised weights (0 for inactive slots).
-        verdict: the frame's :class:`~jaxloc.sg2loc.verdict.Verdict` (``verdict.localized``:
+        verdict: the frame's :class:`~jaxloc.sg2loc.Verdict` (``verdict.localized``:
             act on ``mle``), from the weighted particles and the MLE's scores.
     """
 
@@ -237,7 +237,7 @@ def grid_pixels(camera: Camera, grid: RayGrid) -> tuple[np.ndarray | Array, np.n
     return rows, cols
 
 
-def frames_on_grid(sequence: Sequence, grid: RayGrid) -> Frame:
+def frames_on_grid(sequence: FrameSequence, grid: RayGrid) -> Frame:
     """All frames of a sequence sampled on a ray grid, stacked with a leading T axis (with NumPy
     for a concrete sequence and grid, ``jax.numpy`` for traced ones)."""
     num_frames = sequence.num_frames
@@ -307,7 +307,7 @@ def score_active(
 ) -> Scores:
     """Scores (N,) of the active particles of ``state`` against ``frame``; the scores of inactive
     slots are meaningless (the caller masks them). ``match``: the frame's
-    :func:`~jaxloc.sg2loc.scores.match_patches` (computed here when None).
+    :func:`~jaxloc.sg2loc._scores.match_patches` (computed here when None).
 
     The active particles are gathered to the front and rendered ``config.chunk_size(N)`` at a
     time in a ``lax.while_loop`` that stops after the last chunk holding one (a chunk size >= N
@@ -455,7 +455,7 @@ def step(
 ) -> tuple[ParticleState, StepInfo]:
     """One SG2Loc filter step: predict, render, score, weight, estimate, resample, inject.
 
-    It is :func:`predict_step`, :func:`~jaxloc.sg2loc.scores.match_patches`,
+    It is :func:`predict_step`, :func:`~jaxloc.sg2loc._scores.match_patches`,
     :func:`score_active` and :func:`update_step` in turn. The first frame (``frame.index == 0``)
     is not moved: its particles are the initial set. A non-finite ego-motion counts as zero
     motion and is flagged in ``info.motion_valid``.

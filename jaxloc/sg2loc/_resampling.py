@@ -30,7 +30,7 @@ from jax import Array
 
 from jaxloc.geometry import wrap_angle
 from jaxloc.sg2loc._convert import as_float32, as_int32
-from jaxloc.sg2loc.particles import ParticleState, normalized_weights, uniform_log_weights
+from jaxloc.sg2loc._particles import ParticleState, normalized_weights, uniform_log_weights
 
 #: The resampling schemes (the ``method`` argument of the resampling functions).
 RESAMPLING_METHODS = ("stratified", "systematic")
