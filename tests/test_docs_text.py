@@ -42,7 +42,10 @@ HISTORY = {
     # are numbered 0-4 and stay legitimate)
     "round N": r"\bround[- ](?:[5-9]|[1-9]\d+)\b|\b(?:development|review) rounds?\b",
     # "(fixed, session 28)", "; fixed", "found and fixed"
-    "fixed": r"\(fixed[,;:)]|;\s*fixed(?:[,;.)]|\s+by\b|$)|\bfound and fixed\b|\bnow fixed\b",
+    "fixed": (
+        r"\(fixed(?:[,;:)]|\s+(?:in|by|since|on|after)\b)|;\s*fixed(?:[,;.)]|\s+by\b|$)"
+        r"|\bfound and fixed\b|\bnow fixed\b"
+    ),
     "previously": r"\bpreviously\b|\bformerly\b|\buntil now\b",
     "no longer": r"\bno longer\b",
     # "it used to hang"; not "the key used to draw the particles"
@@ -97,7 +100,6 @@ def code_text(path: Path) -> list[tuple[int, str]]:
                     first = body[0].value.lineno
                     for offset, line in enumerate(body[0].value.value.splitlines()):
                         lines.append((first + offset, line))
-    # A module attribute's "#:" comment is a comment token already; so is everything else.
     return lines
 
 
@@ -162,6 +164,7 @@ def test_the_checks_see_what_they_look_for():
         "(fixed, session 28)",
         "(was: a bare UnicodeDecodeError; fixed by the shared text parser)",
         "(fixed: a NaN pose)",
+        "a NaN pose (fixed in 0.3)",
         "found and fixed: an empty .npy raised EOFError",
         "the map previously stored a zero embedding",
         "so that XLA no longer computes the norm",
