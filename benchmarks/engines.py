@@ -124,7 +124,7 @@ def variants(names):
 def handler_rows(scene, origins, directions):
     """The native handler's FFI call alone, on rays made ready beforehand (unit directions, all
     valid), faces only and with the t, u, v of ``differentiable=False``: what ``raycast``'s own
-    JAX passes around the call cost, and the values inside it (the breakdown of issue 35)."""
+    JAX passes around the call cost, and what the exact values inside it cost."""
     unit = directions / np.linalg.norm(directions, axis=-1, keepdims=True)
     args = (scene.triangles, origins, unit.astype(np.float32), np.ones(origins.shape[0], bool))
     rows = []

@@ -1,7 +1,7 @@
 """Seconds per frame and peak memory of one jitted SG2Loc filter step
 (:func:`jaxloc.sg2loc.step`).
 
-The issue's benchmark: 2500 particles on 960x540 images of a synthetic room
+The paper's scale: 2500 particles on 960x540 images of a synthetic room
 (:mod:`jaxloc.synthetic.indoor`, default room and sensor settings), for
 
 * ``stride 20``: one pass = one step of round 0 (48 x 27 = 1296 rays per particle);
@@ -26,7 +26,7 @@ size, labelled as an estimate.
     python benchmarks/filter_step.py                                   # the full benchmark
     python benchmarks/filter_step.py --particles 200 --frames 2        # a quick run
     python benchmarks/filter_step.py --cases stride --strides 20       # the coarse pass only
-    python benchmarks/filter_step.py --engine jax --chunk 0            # the old one-call step
+    python benchmarks/filter_step.py --engine jax --chunk 0            # pure JAX, all slots at once
 """
 
 from __future__ import annotations
@@ -242,7 +242,7 @@ def run_case(args: argparse.Namespace) -> dict:
 def peer_seconds(scene, poses, camera, grid) -> float:
     """Wall seconds (best of 2) single-threaded embreex (``EmbreeScene.run``) takes to cast every
     slot's rays of ``grid`` from ``poses`` (N, 4): what a step would cost in Embree alone if it
-    rendered the whole capacity (the issue's yardstick)."""
+    rendered the whole capacity (the yardstick of the step's speed)."""
     import jax
     import numpy as np
     from embreex import rtcore_scene

@@ -13,7 +13,7 @@ machine may be shared: rays per CPU-second is the fairer number there. The hit/m
 agreement between jaxloc and Embree is printed (target >= 99.9 %); a sample of disagreements is
 adjudicated with a float64 brute force over all triangles.
 
-    python benchmarks/raycast.py                 # the 2500 poses
+    python benchmarks/raycast.py                 # 2500 poses, the paper's particle count
     python benchmarks/raycast.py --poses 100     # a quick run
     python benchmarks/raycast.py --baseline OLD_RAYCAST.py   # + an older traversal, same rays
 

@@ -1,4 +1,4 @@
-"""Learned vs hand-set SG2Loc likelihood parameters (sigma, lambda_depth, lambda_color), issue 5.
+"""Learned vs hand-set SG2Loc likelihood parameters (sigma, lambda_depth, lambda_color).
 
 1. Training windows (:func:`jaxloc.sg2loc.learn.sequence_windows`) from synthetic training episodes
    (seeds 2000, 2001, ...), scored on both ray grids the filter uses (the coarse and the fine

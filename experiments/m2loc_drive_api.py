@@ -1,4 +1,4 @@
-"""A drive through files, in Python and on the command line (issue 37): the same results.
+"""A drive through files, in Python and on the command line: the same results.
 
 On the held-out drives of ``m2loc_drives.py`` (``--seed 7000``, 20 drives of 10 scans per real
 map, at most 11 kept map vertices per scan, odometry noise 0.05 m / 0.5 deg rms per scan), each

@@ -1,4 +1,4 @@
-"""Localizing a drive, not a scan (issue 26): single scans, the fused windows of the last K scans
+"""Localizing a drive, not a scan: single scans, the fused windows of the last K scans
 (``jaxloc.m2loc.localize_window``) and tracking (``jaxloc.m2loc.Tracker``), on simulated drives of
 small scans cut along the roads of every shared real map and of the synthetic worlds.
 

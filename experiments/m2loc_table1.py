@@ -44,7 +44,7 @@ ROWS = {
     "Multi-3-En": lambda: m2loc_config(3, robust=False, **COMMON),
     "Multi-2-En": lambda: m2loc_config(2, robust=False, **COMMON),
     # the small-scan options of experiments/m2loc_losses.py: the library default (one-to-one
-    # cliques, 256 verified hypotheses) and session 7's (one-to-one cliques, 3 attempts)
+    # cliques, 256 verified hypotheses) and one-to-one cliques with 3 registration attempts
     "Multi-3-En-R": lambda: m2loc_config(3, robust=True, **COMMON),
     "Multi-3-En-R3": lambda: m2loc_config(
         3, robust=True, registration_attempts=3, hypotheses=0, **COMMON

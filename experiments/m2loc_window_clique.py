@@ -4,7 +4,7 @@ A pose from a clique of 3 rests on the minimal set: three associations always fi
 motion, so only the verification of the other vertices speaks for it. On the drives of
 ``m2loc_drives.py`` (same generator, seeds and odometry noise), judged on each drive's last scan,
 this script localizes the single scan and the fused windows of the last 2, 3 and 5 scans on every
-map with the robust default, and counts, for a smallest clique of 3 (today), 4 and 5: successes
+map with the robust default, and counts, for a smallest clique of 3 (minimal), 4 and 5: successes
 (valid, RTE < 7.5 m, RRE < 10 deg), wrong valid poses and false accepts (the next map's drives with
 a valid pose). A larger smallest clique only refuses poses, so one run judges every rule.
 

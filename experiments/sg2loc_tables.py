@@ -11,7 +11,7 @@ shared :class:`jaxloc.scene.Capacity` so every scene reuses the compiled filter 
 Runs (``--phase``):
 
 * ``A``: the default benchmark, semantic + depth + RGB, coarse-to-fine, 10 frames, on every scene
-  (the issue's accuracy check and Table 1/2's 10-frame column), with per-round diagnostics;
+  (the accuracy check and Table 1/2's 10-frame column), with per-round diagnostics;
 * ``B``: Table 7's ablations on 5-frame sequences (full, semantic only, semantic + depth, fixed
   particle count instead of KLD-sampling, a single coarse round) and Table 1/2's 5-frame column;
 * ``C``: Table 1/2's 25- and 50-frame columns on the first ``--long-scenes`` scenes.

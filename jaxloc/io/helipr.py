@@ -27,7 +27,7 @@ tell the sensors apart)::
 
 Checked against the readers of the dataset's authors and of TripletLoc: HeLiPR-File-Player
 ``src/ROSThread.h`` (point structs) and ``src/ROSThread.cpp`` (the field-by-field ``.bin``
-readers and the Aeva stamp threshold, commit e8d95e3), HeLiPR-Pointcloud-Toolbox
+readers and the Aeva stamp threshold; HeLiPR-File-Player@e8d95e3), HeLiPR-Pointcloud-Toolbox
 ``src/PointCloudProcessor.cpp`` (``readBinFile`` overloads, ``loadTrajectory``: stamps in ns),
 HeLiMOS-PointCloud-Toolbox ``README.md`` (the ``LiDAR_GT/{Aeva,Avia,Ouster,Velodyne}_gt.txt``
 names and the ``timestamp x y z qx qy qz qw`` columns), TripletLoc ``src/TripletLoc.cpp``

@@ -1,6 +1,6 @@
 """HeLiPR / TripletLoc instance maps (text): instance centroids per class and road normals.
 
-Layout (TripletLoc's released maps, and the HeLiPR maps in ``shared/data``)::
+Layout (TripletLoc's released maps, the HeLiPR instance maps among them)::
 
     MAP_DIR/instances/<class>.txt    one line per instance: ``id x y z`` (map frame, metres)
     MAP_DIR/RSN/road_normal.txt      one line per road cell: ``x y nx ny nz std_deg``

@@ -21,7 +21,7 @@ from jax import Array
 
 from jaxloc.m2loc._clique import _popcount, greedy_cliques, padded_size, unpack_ranked
 
-#: Odd 32-bit multipliers of the clique hash (fixed: results must not depend on a key).
+#: Odd 32-bit multipliers of the clique hash (constants: results must not depend on a key).
 _HASH_SEED = 0x9E3779B9
 
 

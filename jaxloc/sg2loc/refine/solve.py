@@ -200,7 +200,7 @@ def refine_pose(
             planes = associate(T)
             solution = solve_round(T, planes)
             step = T.inverse() @ solution.pose
-            # A pose that no longer moves gets the same association and the same solve again:
+            # A pose that has stopped moving gets the same association and the same solve again:
             # the rounds after it are skipped (they would cost a raycast and a solve each).
             still = (jnp.linalg.norm(step.translation()) < SETTLED_TRANSLATION) & (
                 jnp.linalg.norm(step.rotation().log()) < SETTLED_ROTATION
