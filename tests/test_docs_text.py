@@ -138,7 +138,7 @@ def test_no_page_points_outside_the_repository():
 
 
 def test_the_checks_see_what_they_look_for():
-    assert len(files(MARKDOWN)) > 20 and (REPO / "jaxloc" / "sg2loc" / "filter.py").is_file()
+    assert len(files(MARKDOWN)) > 20 and (REPO / "jaxloc" / "sg2loc" / "_filter.py").is_file()
     assert OUTSIDE.search("io.load_instance_map('../shared/data/maps')")
     assert OUTSIDE.search("before = /work/main with the binary traversal")
     assert not OUTSIDE.search("see ../pages/results.md or docs/work/notes")

@@ -1,10 +1,10 @@
 """M2Loc / TripletLoc: one-shot global LiDAR localization from semantic instance centroids.
 
 Pipeline: instances from labelled points (:func:`cluster_instances`) -> multi-scale triplet
-descriptors (:func:`describe_points`, :func:`describe_map`) -> per-class top-k matching
-(:func:`match_descriptors`) -> consistency graph (:func:`consistency_graph`) -> maximum clique
+descriptors (:func:`describe_points`, ``describe_map``) -> per-class top-k matching
+(:func:`match_descriptors`) -> consistency graph (``consistency_graph``) -> maximum clique
 (:func:`max_clique`) with M2Loc's dynamic enhancement (and, for small scans, verified clique
-hypotheses: :func:`best_verified_clique`) -> Kabsch + robust refinement with the
+hypotheses: ``best_verified_clique``) -> Kabsch + robust refinement with the
 road-surface-normal prior (:func:`register`). User entry points: :func:`build_map` and
 :func:`localize_scan` (one scan; :func:`prepare_queries` compiles its programs ahead, in the
 background), :func:`query` (the pure core: a padded scan, :func:`pad_scan`, in a map, under a

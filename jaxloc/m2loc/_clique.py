@@ -150,7 +150,7 @@ def greedy_cliques(adjacency: Array, valid: Array) -> tuple[Array, Array]:
 
     Args:
         adjacency: (n, n) bool, symmetric, False on the diagonal and for invalid vertices (e.g.
-            from :func:`consistency_graph`).
+            from ``consistency_graph``).
         valid: (n,) bool.
 
     Returns:
@@ -308,7 +308,7 @@ def max_clique_symmetric(
     num_seeds: int = 64,
 ) -> tuple[Array, Array]:
     """:func:`max_clique_with_info` for an adjacency that is already symmetric, masked by
-    ``valid`` and False on the diagonal (e.g. from :func:`consistency_graph`); traceable."""
+    ``valid`` and False on the diagonal (e.g. from ``consistency_graph``); traceable."""
     n = adjacency.shape[0]
     n_pad = padded_size(n)
     a = jnp.pad(adjacency, ((0, n_pad - n), (0, n_pad - n)))

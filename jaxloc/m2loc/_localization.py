@@ -226,7 +226,7 @@ def prepare_queries(triplet_map: TripletMap, capacities: Sequence[int]) -> None:
     (:func:`jaxloc.compilation_cache.prepare_call`; nothing without the compilation cache).
 
     Args:
-        triplet_map: the map, or its shapes before it is described (:func:`triplet_map_spec`):
+        triplet_map: the map, or its shapes before it is described (``triplet_map_spec``):
             compiling while :func:`build_map` runs is the point.
         capacities: padded scan sizes.
     """

@@ -129,7 +129,7 @@ class TrackResult(eqx.Module):
         T_map_scan: (4, 4) float32 pose in the map frame (``p_map = T @ p_scan``; identity when
             not valid).
         valid: () bool, the pose verified.
-        mode: () int32 :data:`TRACKED`, :data:`RELOCALIZED`, :data:`LOST` or :data:`PENDING`.
+        mode: () int32, a :class:`TrackStatus` value.
         inlier_fraction: () float32 verified fraction of the scan (as the global query's).
         num_associations: () int32 local associations of the last round (0 without a track).
     """
