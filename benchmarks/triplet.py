@@ -93,7 +93,7 @@ def main() -> None:
         "--config",
         choices=sorted(CONFIGS),
         default="tripletloc",
-        help="localization configuration (default tripletloc, as sessions 3-4 measured)",
+        help="localization configuration (default tripletloc)",
     )
     parser.add_argument(
         "--capacity", type=int, default=None, help="pad every query to this size (default: by size)"

@@ -163,8 +163,8 @@ def test_instance_map_truncated_mid_line_or_empty(tmp_path):
 
 def test_numbers_beyond_float32_in_a_file_are_refused_naming_it(tmp_path):
     """Finite in float64 but not in float32, where every value read ends up: an instance centroid
-    (was: a map with an infinite point), an embedding-table row (was: a zero map embedding, its
-    norm overflowing), an embedding table's ``.npy``, and a complex ``.npy`` (was: its imaginary
+    (else a map with an infinite point), an embedding-table row (else a zero map embedding, its
+    norm overflowing), an embedding table's ``.npy``, and a complex ``.npy`` (else its imaginary
     part dropped with a ComplexWarning)."""
     _write_instance_map(tmp_path, b"0 1 2 3\n1 1e39 0 0\n")
     with pytest.raises(ValueError, match=r"15\.txt:2: .* beyond float32's range \(1e\+39"):
@@ -180,7 +180,7 @@ def test_numbers_beyond_float32_in_a_file_are_refused_naming_it(tmp_path):
     complex_refused = r"complex\.npy: expected a \(K, d\) array of real numbers"
     with pytest.raises(ValueError, match=complex_refused):
         read_embedding_table(tmp_path / "complex.npy")
-    np.save(tmp_path / "empty.npy", np.zeros((3, 0)))  # was: a table of 0-dimensional embeddings
+    np.save(tmp_path / "empty.npy", np.zeros((3, 0)))  # else a table of 0-dimensional embeddings
     with pytest.raises(ValueError, match=r"empty\.npy: expected a \(K, d\) array, got the empty"):
         read_embedding_table(tmp_path / "empty.npy")
 

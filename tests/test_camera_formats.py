@@ -130,7 +130,7 @@ def test_a_rescan_is_expressed_in_its_reference_frame(recording, tmp_path):
     np.testing.assert_allclose(moved.sequence.ego_motion, reference.sequence.ego_motion, atol=1e-5)
     with pytest.raises(ValueError, match="no scan 'other'"):
         read_rescan_transform(tmp_path / "3RScan.json", "other")
-    scenes[0]["scans"] = 5  # was: a TypeError from iterating it
+    scenes[0]["scans"] = 5  # not a TypeError from iterating it
     (tmp_path / "3RScan.json").write_text(json.dumps(scenes))
     with pytest.raises(ValueError, match=r"3RScan\.json: scene 'ref_scan': 'scans' is not a list"):
         read_rescan_transform(tmp_path / "3RScan.json", "rescan_id")

@@ -131,7 +131,7 @@ def test_intrinsics_and_resize_give_the_known_rays(tmp_path):
 
 @pytest.mark.parametrize("size", [{"width": 0}, {"height": -3}, {"width": 40.5}])
 def test_a_working_size_that_is_not_a_positive_integer_is_refused(tmp_path, size):
-    """Was: "Camera.fx must be positive" from deep inside (width 0), or PIL's error."""
+    """Not "Camera.fx must be positive" from deep inside (width 0), nor PIL's error."""
     write_folder(tmp_path, [0])
     with pytest.raises(ValueError, match=r"(width|height) must be an integer >= 1 \(pixels\)"):
         read_camera_sequence(tmp_path, **size)

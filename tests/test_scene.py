@@ -452,7 +452,7 @@ def _capacity_record(scene: SceneGraph, **fields) -> np.ndarray:
     return np.array(tuple(scene.capacity._replace(**fields)), np.int64)
 
 
-@pytest.mark.timeout(60)  # leaf_size 0 used to make the BVH build split forever
+@pytest.mark.timeout(60)  # leaf_size 0 would make the BVH build split forever
 @pytest.mark.parametrize(
     "fields, match",
     [

@@ -216,8 +216,9 @@ def _box_mean(image: Array) -> Array:
     Two separable window sums (``lax.reduce_window``, 7 rows, then 7 columns), which XLA keeps
     as passes of their own. Sums of 7 shifted slices, the same additions in the same order (the
     results are bit-identical), got the column pass fused into the row pass on XLA:CPU, which
-    then recomputed every row sum 7 times: inside the paper-scale filter step the colour score
-    took 0.26 s of a stride-4 step that way, 0.17-0.18 s now (``benchmarks/step_trace.py``).
+    then recomputed every row sum 7 times (inside the paper-scale filter step, 0.26 s of a
+    stride-4 step for the colour score against 0.17-0.18 s with the window sums:
+    ``benchmarks/step_trace.py``).
     """
     ones = (1, 1, 1)
     rows = jax.lax.reduce_window(image, 0.0, jax.lax.add, (1, SSIM_WINDOW, 1), ones, "VALID")
