@@ -228,7 +228,12 @@ def fmt_rate(rays, seconds):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--poses", type=int, default=2500, help="poses per ray set (the paper's particle count: 2500)")
+    parser.add_argument(
+        "--poses",
+        type=int,
+        default=2500,
+        help="poses per ray set (the paper's particle count: 2500)",
+    )
     parser.add_argument("--grids", default="patch,stride", help="comma list of patch,stride")
     parser.add_argument("--repeats", type=int, default=2, help="timed runs (best of) per engine")
     parser.add_argument("--seed", type=int, default=0)
