@@ -46,7 +46,7 @@ from jaxloc.sg2loc._convert import as_float32, as_int32, finite_nonnegative, sho
 from jaxloc.sg2loc.filter import Frame, Region, StepConfig, check_particle_chunk, grid_pixels, step
 from jaxloc.sg2loc.particles import PAPER_HEIGHTS, ParticleState, init_region, inject_uniform
 from jaxloc.sg2loc.resampling import KLDConfig
-from jaxloc.sg2loc.scores import ObservationConfig
+from jaxloc.sg2loc.scores import ObservationConfig, check_ssim_strides
 from jaxloc.sg2loc.sequence import Sequence
 from jaxloc.sg2loc.verdict import Verdict, VerdictConfig, default_verdict
 
@@ -181,12 +181,19 @@ def init(
         scene: the map.
         camera: the query camera (its image size fixes the ray grid).
         config: :class:`OnlineConfig` (paper settings at the coarse stride).
+
+    Raises:
+        ValueError: with the colour score on, a stride whose ray grid on the camera's image is
+            smaller than SSIM's window (:func:`~jaxloc.sg2loc.scores.check_ssim_strides`).
     """
     config = OnlineConfig() if config is None else config
     if not isinstance(scene, SceneGraph):
         raise TypeError(f"scene must be a jaxloc.SceneGraph, got {type(scene).__name__}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera must be a jaxloc.Camera, got {type(camera).__name__}")
+    if config.observation.use_color:
+        setting, otherwise = "OnlineConfig(stride=...)", "ObservationConfig(use_color=False)"
+        check_ssim_strides((config.stride,), camera.width, camera.height, setting, otherwise)
     rows, cols = config.patch_shape
     region = Region.of_scene(scene) if config.region is None else config.region
     step_config = StepConfig(
@@ -380,6 +387,9 @@ def filter_sequence(
         raise TypeError(f"sequence must be a jaxloc.Sequence, got {type(sequence).__name__}")
     config = OnlineConfig() if config is None else config
     config = dataclasses.replace(config, patch_shape=tuple(sequence.patch_shape))
+    if sequence.rgb is None:  # no colour to score: the stride need not suit SSIM
+        observation = dataclasses.replace(config.observation, use_color=False)
+        config = dataclasses.replace(config, observation=observation)
     state = init(key, scene, sequence.camera, config)
     estimates = []
     for t in range(sequence.num_frames):
