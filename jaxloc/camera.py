@@ -96,6 +96,12 @@ def _host_grid(
     return RayGrid(uv_device, patch, rows, cols, shape)
 
 
+def stride_grid_shape(stride: int, width: int, height: int) -> tuple[int, int]:
+    """(rows, cols) of the rays :func:`stride_grid` casts at ``stride`` on a width x height image
+    (host ints; no camera needed)."""
+    return len(range(stride // 2, height, stride)), len(range(stride // 2, width, stride))
+
+
 def stride_grid(camera: Camera, stride: int, rows: int = 9, cols: int = 16) -> RayGrid:
     """Rays through every ``stride``-th pixel: u = stride // 2 + k * stride (k = 0, 1, ...).
 

@@ -25,6 +25,15 @@ def position_error(p_est: np.ndarray, p_gt: np.ndarray) -> np.ndarray:
     return np.linalg.norm(np.asarray(p_est, np.float64) - np.asarray(p_gt, np.float64), axis=-1)
 
 
+def pose_errors(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position (m) and geodesic rotation (deg) errors of 4x4 rigid poses (..., 4, 4)."""
+    T_est, T_gt = np.asarray(T_est, np.float64), np.asarray(T_gt, np.float64)
+    return (
+        position_error(T_est[..., :3, 3], T_gt[..., :3, 3]),
+        rotation_error_deg(T_est[..., :3, :3], T_gt[..., :3, :3]),
+    )
+
+
 def yaw_pose_errors(poses_est: np.ndarray, poses_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Position (m) and geodesic rotation (deg) errors of 4-DoF poses (..., 4) = (x, y, z, yaw).
 
@@ -35,6 +44,19 @@ def yaw_pose_errors(poses_est: np.ndarray, poses_gt: np.ndarray) -> tuple[np.nda
     est, gt = np.asarray(poses_est, np.float64), np.asarray(poses_gt, np.float64)
     dyaw = (est[..., 3] - gt[..., 3] + np.pi) % (2.0 * np.pi) - np.pi
     return position_error(est[..., :3], gt[..., :3]), np.rad2deg(np.abs(dyaw))
+
+
+def summarize_sequence(poses_est: np.ndarray, poses_gt: np.ndarray) -> dict:
+    """Per-frame errors of 4-DoF poses (T, 4) (:func:`yaw_pose_errors`) and the summaries
+    (:func:`summarize`) of all frames and of the last, as JSON-ready values: keys
+    ``position_error_m``, ``rotation_error_deg`` (lists), ``all_frames``, ``last_frame``."""
+    pos_err, rot_err = yaw_pose_errors(poses_est, poses_gt)
+    return {
+        "position_error_m": pos_err.tolist(),
+        "rotation_error_deg": rot_err.tolist(),
+        "all_frames": summarize(pos_err, rot_err),
+        "last_frame": summarize(pos_err[-1:], rot_err[-1:]),
+    }
 
 
 def recall(

@@ -102,6 +102,15 @@ def test_saved_map_refuses_descriptor_options(built, sequence_dir, capsys):
     assert code == 2 and "a saved map keeps the descriptors" in err
 
 
+def test_no_robust_applies_to_a_saved_robust_map(built, sequence_dir, capsys):
+    """--no-robust on a map saved with m2loc_config's robust settings (their uniqueness check
+    needs clique hypotheses, which --no-robust turns off) runs M2Loc as published."""
+    argv = [sequence_dir, "--every", "10", "--json", "--no-progress", "--no-robust"]
+    code, out, err = run(["localize-lidar", built[1], *argv], capsys)
+    assert code == 0, err
+    assert len(json.loads(out)["scans"]) == 2
+
+
 def _bad_sequences(sequence_dir: Path, root: Path) -> dict[str, tuple[Path, str]]:
     """name -> (sequence folder, expected part of the message) of one bad input each."""
 

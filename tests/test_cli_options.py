@@ -18,10 +18,12 @@ from pathlib import Path
 
 import pytest
 
+from jaxloc.camera import stride_grid_shape
 from jaxloc.cli import build_parser, check_args, main
-from jaxloc.cli._demo import PAPER_STRIDES, fitting_strides, ray_grid_shape
+from jaxloc.cli._demo import fitting_strides
 from jaxloc.cli._errors import InputError
 from jaxloc.cli._options import Parser
+from jaxloc.sg2loc import SG2LocConfig
 from jaxloc.sg2loc._scores import SSIM_WINDOW
 
 #: The values every numeric option is tried with.
@@ -213,9 +215,9 @@ def test_fitting_strides_lowers_the_paper_strides_for_a_small_image():
     strides = fitting_strides(args)
     assert strides == (18, 8, 4)
     for stride in strides:
-        assert min(ray_grid_shape(stride, 160, 120)) >= SSIM_WINDOW
-    assert min(ray_grid_shape(19, 160, 120)) < SSIM_WINDOW  # 18 is the largest that fits
-    assert fitting_strides(_demo_args()) == PAPER_STRIDES  # 960 x 540: the paper's
+        assert min(stride_grid_shape(stride, 160, 120)) >= SSIM_WINDOW
+    assert min(stride_grid_shape(19, 160, 120)) < SSIM_WINDOW  # 18 is the largest that fits
+    assert fitting_strides(_demo_args()) == SG2LocConfig.strides  # 960 x 540: the paper's
     assert fitting_strides(_demo_args("--width", "160", "--height", "120", "--strides", "8,4")) == (
         8,
         4,
@@ -223,12 +225,12 @@ def test_fitting_strides_lowers_the_paper_strides_for_a_small_image():
     check_args(args)  # the demo at 160 x 120 passes its checks with its default strides
 
 
-def test_ray_grid_shape_is_the_grid_stride_grid_casts():
+def test_stride_grid_shape_is_the_grid_stride_grid_casts():
     from jaxloc.camera import Camera, stride_grid
 
     for width, height, stride in [(160, 120, 18), (160, 120, 20), (33, 17, 5), (960, 540, 20)]:
         grid = stride_grid(Camera.from_fov(width, height, 60.0), stride)
-        assert tuple(grid.shape) == ray_grid_shape(stride, width, height)
+        assert tuple(grid.shape) == stride_grid_shape(stride, width, height)
 
 
 def test_fitting_strides_refuses_strides_too_coarse_for_the_image(capsys):
@@ -244,11 +246,11 @@ def test_fitting_strides_refuses_strides_too_coarse_for_the_image(capsys):
 @pytest.mark.parametrize(
     ("argv", "fragment"),
     [
-        (["demo", "--width", "12"], "--width 12 --height 540: the image must hold the 9 x 16"),
-        (["demo", "--height", "8"], "want --width >= 16 and --height >= 9"),
+        (["demo", "--width", "12"], "--width/--height: image 12x540 must hold the 9x16 patch"),
+        (["demo", "--height", "8"], "want width >= 16 and height >= 9"),
         (["bench", "filter", "--stride", "20"], "--stride: stride 20 gives a 4 x 8 ray grid"),
-        (["bench", "filter", "--width", "40", "--height", "30"], "use --stride 4 or less"),
-        (["bench", "filter", "--width", "10"], "--width 10 --height 90: the image must hold"),
+        (["bench", "filter", "--width", "40", "--height", "30"], "use strides of at most 4"),
+        (["bench", "filter", "--width", "10"], "--width/--height: image 10x90 must hold"),
         (["bench", "raycast", "--width", "8", "--stride", "40"], "--stride 40 casts no ray"),
         (["localize-lidar", "m", "s", "--accumulate", "3", "--accumulate-max", "2"], "(3), got 2"),
         (["localize-lidar", "m", "s", "--window-instances", "0"], "--window-instances is only"),
@@ -261,3 +263,53 @@ def test_options_that_do_not_fit_each_other_are_one_line_before_any_work(argv, f
     line = _one_line(err)
     assert out == "" and fragment in line, line
     assert line.startswith(f"jaxloc {' '.join(argv[: 2 if argv[0] == 'bench' else 1])}: error:")
+
+
+# ----------------------------------------------------------------------------- list options
+
+
+@pytest.mark.parametrize(
+    ("command", "option", "forms", "expected"),
+    [
+        (["demo"], "--strides", (["10", "6", "4"], ["10,6,4"], ["10,6", "4"]), (10, 6, 4)),
+        (["localize-camera", "m", "s"], "--strides", (["20", "8"], ["20,8"]), (20, 8)),
+        (["localize-camera", "m", "s"], "--boxes", (["0.8", "0.4"], ["0.8,0.4"]), (0.8, 0.4)),
+        (["localize-camera", "m", "s"], "--heights", (["1.2", "1.5"], ["1.2,1.5"]), (1.2, 1.5)),
+        (["localize-camera", "m", "s"], "--patches", (["6", "8"], ["6,8"]), (6, 8)),
+    ],
+)
+def test_list_options_take_spaces_or_commas(command, option, forms, expected):
+    parser = build_parser()
+    for form in forms:
+        args = parser.parse_args([*command, option, *form])
+        assert getattr(args, option[2:]) == expected, form
+    assert getattr(parser.parse_args(command), option[2:]) is None  # the library's default
+
+
+def test_the_demo_runs_with_strides_written_either_way(capsys):
+    for form in (["10", "6", "4"], ["10,6,4"]):
+        args = _demo_args("--strides", *form)
+        check_args(args)
+        assert fitting_strides(args) == (10, 6, 4)
+    assert main(["demo", "--strides", "10", "x"]) == 2
+    assert "want positive integers like 20,8,4 or 20 8 4, got 'x'" in capsys.readouterr().err
+    assert main(["localize-camera", "m", "s", "--patches", "6", "8", "9"]) == 2
+    err = capsys.readouterr().err
+    assert _one_line(err).endswith(
+        "argument --patches: want 2 values, got 3 (see " + ("jaxloc localize-camera --help)")
+    )
+
+
+def test_help_says_how_to_write_list_options(capsys):
+    for command in (["demo"], ["localize-camera"]):
+        with pytest.raises(SystemExit):
+            main([*command, "--help"])
+        assert "'20 8 4' or '20,8,4'" in " ".join(capsys.readouterr().out.split())
+
+
+def test_the_command_line_is_thin():
+    """Parse, open, run, write, print: every rule lives in the library, so ``jaxloc/cli/`` stays
+    small."""
+    folder = Path(__file__).resolve().parents[1] / "jaxloc" / "cli"
+    lines = sum(len(path.read_text().splitlines()) for path in folder.glob("*.py"))
+    assert lines <= 1500, lines

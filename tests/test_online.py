@@ -141,7 +141,7 @@ def test_bad_frames_and_configs_are_clear_errors(world):
         SG2LocConfig(relocalize_after=-1)
     with pytest.raises(ValueError, match="patch_shape must be two positive ints"):
         online.init(jax.random.key(0), scene, sequence.camera, STREAM, patch_shape=(3, 0))
-    with pytest.raises(ValueError, match="SSIM needs a ray grid of at least 7 x 7"):
+    with pytest.raises(ValueError, match=r"^SG2LocConfig\(strides=\.\.\.\): stride 4 gives a 4 x"):
         online.init(
             jax.random.key(0),
             scene,
@@ -180,3 +180,32 @@ def test_filter_sequence_is_the_stream(world):
         np.testing.assert_array_equal(a, b)
     with pytest.raises(TypeError, match="jaxloc.FrameSequence"):
         online.filter_sequence(jax.random.key(0), scene, None)
+
+
+def test_a_stride_too_coarse_for_ssim_names_the_setting_that_fixes_it(world):
+    """At 160 x 90 the coarse stride 20 casts 4 x 8 rays, below SSIM's 7 x 7 window: the stream
+    and the offline filter refuse it in one line naming the setting (the one config both take)
+    and the largest stride that fits (13); without colour either runs."""
+    from jaxloc.camera import Camera
+    from jaxloc.sg2loc import FrameSequence, ObservationConfig, warm_up
+    from jaxloc.sg2loc import _localization as localization
+
+    scene = world[0]
+    camera = Camera.from_fov(160, 90, 60.0)
+    fix = "smaller than SSIM's 7 x 7 window; use strides of at most 13"
+    with pytest.raises(
+        ValueError, match=r"^SG2LocConfig\(strides=\.\.\.\): stride 20 gives a 4 x 8"
+    ) as info:
+        online.init(jax.random.key(0), scene, camera)
+    assert fix in str(info.value) and "\n" not in str(info.value)
+    dim = scene.embeddings.shape[1]
+    frames = FrameSequence.zeros(camera, 2, (9, 16), dim)
+    with pytest.raises(
+        ValueError, match=r"^SG2LocConfig\(strides=\.\.\.\): stride 20 gives a 4 x 8"
+    ) as info:
+        warm_up(jax.random.key(0), scene, frames, SG2LocConfig(capacity=8))
+    assert fix in str(info.value) and "ObservationConfig(use_color=False)" in str(info.value)
+    no_color = ObservationConfig(use_color=False)
+    online.init(jax.random.key(0), scene, camera, SG2LocConfig(observation=no_color))
+    without_rgb = FrameSequence.zeros(camera, 2, (9, 16), dim, rgb=False)
+    assert len(localization._checked(scene, without_rgb, SG2LocConfig(capacity=8), None)) == 3

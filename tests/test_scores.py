@@ -285,3 +285,29 @@ def test_particle_log_likelihood_combines_the_scores_under_vmap():
         np.testing.assert_allclose(float(out.depth[i]), s_d, atol=1e-5)
     with pytest.raises(ValueError, match="rendered_rgb"):
         S.particle_log_likelihood(config, match, rendered_object[0], rendered_depth[0], sensor)
+
+
+def test_largest_ssim_stride_is_the_largest_whose_stride_grid_holds_the_window():
+    from jaxloc.camera import Camera, stride_grid, stride_grid_shape
+
+    for width, height in [(160, 90), (160, 120), (960, 540), (64, 48), (33, 17), (7, 7)]:
+        largest = S.largest_ssim_stride(width, height)
+        camera = Camera.from_fov(width, height, 60.0)
+        shapes = {s: tuple(stride_grid(camera, s).shape) for s in range(1, largest + 3)}
+        assert all(shapes[s] == stride_grid_shape(s, width, height) for s in shapes)
+        assert min(shapes[largest]) >= S.SSIM_WINDOW
+        assert all(min(shapes[s]) < S.SSIM_WINDOW for s in range(largest + 1, largest + 3))
+    assert (S.largest_ssim_stride(160, 90), S.largest_ssim_stride(160, 120)) == (13, 18)
+    assert S.largest_ssim_stride(6, 100) == 0
+
+
+def test_check_ssim_strides_names_the_setting_in_one_line():
+    S.check_ssim_strides((13, 8, 4), 160, 90)  # all fit
+    with pytest.raises(ValueError) as info:
+        S.check_ssim_strides((8, 20), 160, 90, "--strides", "--no-rgb")
+    assert str(info.value) == (
+        "--strides: stride 20 gives a 4 x 8 ray grid at 160 x 90, smaller than SSIM's 7 x 7 "
+        "window; use strides of at most 13, or --no-rgb"
+    )
+    with pytest.raises(ValueError, match=r"^strides: stride 1 .* no stride fits an image under 7"):
+        S.check_ssim_strides((1,), 6, 100)

@@ -4,105 +4,79 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
+from jaxloc.cli._errors import reading
+from jaxloc.cli._options import add_list, command, given, positive_int, seed
+
+_DESCRIPTION = """\
+Localize a camera in an embedded synthetic room (SG2Loc, no downloads).
+
+Builds a synthetic room and a query sequence, renders a few views, runs the coarse-to-fine
+particle filter with a progress bar, prints per-frame errors and writes a figure of the particles
+per round and frame.
+"""
+_EPILOG = """\
+examples:
+  jaxloc demo
+  jaxloc demo --seed 3 --frames 10 --out demo.png
+  jaxloc demo --width 160 --height 120   # strides lowered to fit: 18,8,4
+  jaxloc demo --strides 10 6 4           # or --strides 10,6,4
+"""
+
+
+def add_parser(commands) -> None:
+    """Register ``demo`` on the ``jaxloc`` subcommand parsers."""
+    demo = command(commands, "demo", _DESCRIPTION, _EPILOG)
+    add = demo.add_argument
+    add("--seed", type=seed, default=1, help="room and sequence seed")
+    add("--frames", type=positive_int, default=6, help="frames in the sequence")
+    add("--particles", type=positive_int, help="particle capacity (default SG2LocConfig.capacity)")
+    add("--width", type=positive_int, help="image width, px (default SensorConfig.width)")
+    add("--height", type=positive_int, help="image height, px (default SensorConfig.height)")
+    add_list(add, "--strides", positive_int, "20,8,4", "pixel stride of each coarse-to-fine "
+             "round, each casting at least SSIM's 7 x 7 rays (default SG2LocConfig.strides, each "
+             "lowered to the largest that fits the image)", metavar="S")  # fmt: skip
+    add("--out", type=Path, default=Path("jaxloc_demo.png"), help="figure (PNG)")
+
 
 def demo_episode_config(args: argparse.Namespace):
-    """The demo's room (4-5 m square, 15-18 objects) seen by an ``args.width x args.height``
-    camera; ``bench filter`` uses it too (same scene and camera: shared compilations)."""
+    """The demo's room seen by the synthetic camera of ``--width`` x ``--height`` (an InputError
+    if that cannot hold its patch grid); ``bench filter``'s too (shared compilations)."""
     from jaxloc.synthetic import indoor
 
-    return indoor.EpisodeConfig(
-        room=indoor.RoomConfig(
-            length_range=(4.0, 5.0), width_range=(4.0, 5.0), num_objects=(15, 18)
-        ),
-        sensor=indoor.SensorConfig(width=args.width, height=args.height),
-    )
-
-
-#: The demo's strides unless ``--strides`` is given: the paper's (20, 8, 4), each lowered where a
-#: small image would give its round fewer rays per side than SSIM's window.
-PAPER_STRIDES = (20, 8, 4)
-
-
-def ray_grid_shape(stride: int, width: int, height: int) -> tuple[int, int]:
-    """(rows, cols) of the ray grid of ``jaxloc.stride_grid`` at ``stride`` on a width x height
-    image."""
-    return len(range(stride // 2, height, stride)), len(range(stride // 2, width, stride))
-
-
-def fits_ssim(stride: int, width: int, height: int) -> bool:
-    """Whether ``stride`` casts at least SSIM's 7 x 7 rays on a width x height image."""
-    from jaxloc.sg2loc._scores import SSIM_WINDOW
-
-    return min(ray_grid_shape(stride, width, height)) >= SSIM_WINDOW
-
-
-def largest_fitting_stride(width: int, height: int, upper: int) -> int | None:
-    """The largest stride <= ``upper`` whose ray grid holds SSIM's window (None: not even 1)."""
-    return next((s for s in range(upper, 0, -1) if fits_ssim(s, width, height)), None)
-
-
-def check_image_size(args: argparse.Namespace) -> None:
-    """``--width`` and ``--height`` of the demo's room (and ``bench filter``'s): the image must
-    hold the synthetic sensor's patch grid (9 x 16 patches, at least one pixel each), an
-    InputError naming the options otherwise."""
-    from jaxloc.cli._errors import InputError
-    from jaxloc.synthetic.indoor import SensorConfig
-
-    rows, cols = SensorConfig.patch_rows, SensorConfig.patch_cols
-    if args.width < cols or args.height < rows:
-        raise InputError(
-            f"--width {args.width} --height {args.height}: the image must hold the "
-            f"{rows} x {cols} patch grid (want --width >= {cols} and --height >= {rows})"
-        )
+    with reading("--width/--height"):
+        sensor = indoor.SensorConfig(**given(width=args.width, height=args.height))
+    room = indoor.RoomConfig(length_range=(4.0, 5.0), width_range=(4.0, 5.0), num_objects=(15, 18))
+    return indoor.EpisodeConfig(room=room, sensor=sensor)
 
 
 def fitting_strides(args: argparse.Namespace) -> tuple[int, ...]:
-    """The rounds' strides for ``args.width x args.height``: ``--strides`` as given (an
-    InputError naming the largest stride that fits if one gives fewer than 7 x 7 rays), else the
-    paper's, each lowered to the largest stride that fits."""
-    from jaxloc.cli._errors import InputError
-    from jaxloc.sg2loc._scores import SSIM_WINDOW
+    """``--strides`` (an InputError if one casts fewer than SSIM's 7 x 7 rays on the image), else
+    ``SG2LocConfig.strides``, each lowered to the largest stride that fits."""
+    from jaxloc.sg2loc import SG2LocConfig, check_ssim_strides
+    from jaxloc.sg2loc._scores import largest_ssim_stride
 
-    given = () if args.strides is None else tuple(args.strides)
-    largest = largest_fitting_stride(args.width, args.height, max(PAPER_STRIDES + given))
-    if largest is None:
-        raise InputError(
-            f"--width {args.width} --height {args.height}: the image is too small for the colour "
-            f"score's {SSIM_WINDOW} x {SSIM_WINDOW} SSIM window (want at least {SSIM_WINDOW} px "
-            "per side)"
-        )
+    sensor = demo_episode_config(args).sensor
     if args.strides is None:
-        return tuple(min(s, largest) for s in PAPER_STRIDES)
-    too_coarse = [s for s in given if not fits_ssim(s, args.width, args.height)]
-    if too_coarse:
-        rows, cols = ray_grid_shape(too_coarse[0], args.width, args.height)
-        raise InputError(
-            f"--strides: stride {too_coarse[0]} gives a {rows} x {cols} ray grid at "
-            f"{args.width} x {args.height}, smaller than SSIM's {SSIM_WINDOW} x {SSIM_WINDOW} "
-            f"window; use strides of at most {largest}"
-        )
-    return given
-
-
-def check_demo(args: argparse.Namespace) -> None:
-    """The demo's options that depend on each other, before anything is built: the image holds
-    the patch grid, the strides fit it (:func:`fitting_strides`)."""
-    check_image_size(args)
-    fitting_strides(args)
+        largest = largest_ssim_stride(sensor.width, sensor.height)
+        return tuple(min(s, largest) for s in SG2LocConfig.strides)
+    with reading():
+        check_ssim_strides(args.strides, sensor.width, sensor.height, "--strides")
+    return args.strides
 
 
 def run_demo(args: argparse.Namespace) -> int:
     import jax
 
     from jaxloc.camera import stride_grid
-    from jaxloc.metrics import summarize, yaw_pose_errors
+    from jaxloc.metrics import summarize_sequence
     from jaxloc.sg2loc import (
         FrameSequence,
-        KLDConfig,
         SG2LocConfig,
+        kld_for_capacity,
         localize,
         render_batch,
         warm_up,
@@ -111,37 +85,29 @@ def run_demo(args: argparse.Namespace) -> int:
     from jaxloc.synthetic import indoor
 
     strides = fitting_strides(args)
-    if args.strides is None and strides != PAPER_STRIDES:
-        shown = ",".join(map(str, strides))
-        print(
-            f"strides {shown} (the paper's 20,8,4, lowered to fit a "
-            f"{args.width} x {args.height} image)"
-        )
-    start = time.perf_counter()
     episode_config = demo_episode_config(args)
+    sensor = episode_config.sensor
+    if args.strides is None and strides != SG2LocConfig.strides:
+        shown, paper = (",".join(map(str, s)) for s in (strides, SG2LocConfig.strides))
+        print(f"strides {shown} (the paper's {paper}, lowered to fit a {sensor.width} x "
+              f"{sensor.height} image)")  # fmt: skip
+    start = time.perf_counter()
     room = indoor.make_room(args.seed, episode_config.room)
     scene = indoor.scene_graph(room)
-    sg2loc_config = SG2LocConfig(
-        capacity=args.particles,
-        strides=strides,
-        kld=KLDConfig(min_particles=min(500, args.particles), max_particles=args.particles),
-    )
+    capacity = args.particles or SG2LocConfig.capacity
+    config = SG2LocConfig(capacity=capacity, strides=strides, kld=kld_for_capacity(capacity))
     key = jax.random.key(args.seed)
     # the filter's programs compile on the second core while the query frames are rendered
     # (make_episode's own two steps, split around it)
-    sensor = episode_config.sensor
-    patch_shape = (sensor.patch_rows, sensor.patch_cols)
-    frame_shapes = FrameSequence.zeros(
-        sensor.camera(), args.frames, patch_shape, room.embeddings.shape[1]
-    )
-    warm_up(key, scene, frame_shapes, sg2loc_config, progress=True)
+    patches, dim = (sensor.patch_rows, sensor.patch_cols), room.embeddings.shape[1]
+    frame_shapes = FrameSequence.zeros(sensor.camera(), args.frames, patches, dim)
+    warm_up(key, scene, frame_shapes, config, progress=True)
     del frame_shapes  # 50 MB of zeros at 960 x 540
     episode = indoor.episode_in_room(room, room, args.seed, args.frames, episode_config)
     print(
         f"room {episode.room.size[0]:.1f} x {episode.room.size[1]:.1f} m: "
         f"{scene.num_objects} objects, {scene.num_triangles} triangles, "
-        f"map {scene.storage_mb():.2f} MB "
-        f"({time.perf_counter() - start:.1f} s to build)"
+        f"map {scene.storage_mb():.2f} MB ({time.perf_counter() - start:.1f} s to build)"
     )
     camera = episode.sequence.camera
     grid = stride_grid(camera, min(10, strides[0]), *episode.sequence.patch_shape)
@@ -149,24 +115,22 @@ def run_demo(args: argparse.Namespace) -> int:
     poses = np.asarray(episode.poses_gt[:num_views], np.float32)
     # the views on the host at once: eager indexing compiles a small program per array shape
     views = jax.tree.map(np.asarray, jax.jit(render_batch)(scene, poses, camera, grid))
-    for t in range(num_views):
-        seen = np.unique(views.object_id[t])
-        depth = views.depth[t][np.isfinite(views.depth[t])]
-        print(
-            f"view {t + 1}: {np.sum(seen >= 0)} objects visible, depth {depth.min():.2f}-"
-            f"{depth.max():.2f} m, {np.mean(views.valid[t]):.0%} rays hit"
-        )
-    result = localize(key, scene, episode.sequence, sg2loc_config, progress=True)
-    pos_err, rot_err = yaw_pose_errors(np.asarray(result.poses), episode.poses_gt)
+    per_view = zip(views.object_id, views.depth, views.valid, strict=True)
+    for t, (ids, depth, hit) in enumerate(per_view, start=1):
+        seen, depth = np.sum(np.unique(ids) >= 0), depth[np.isfinite(depth)]
+        print(f"view {t}: {seen} objects visible, depth {depth.min():.2f}-{depth.max():.2f} m, "
+              f"{np.mean(hit):.0%} rays hit")  # fmt: skip
+    result = localize(key, scene, episode.sequence, config, progress=True)
+    errors = summarize_sequence(np.asarray(result.poses), episode.poses_gt)
     localized = np.asarray(result.localized)
-    for t, (p, r) in enumerate(zip(pos_err, rot_err, strict=True)):
-        verdict = "localized" if localized[t] else "not localized"
-        print(f"frame {t + 1}: {verdict}, position error {p:.3f} m, rotation error {r:.2f} deg")
-    summary = summarize(pos_err[-1:], rot_err[-1:])
+    per_frame = (errors["position_error_m"], errors["rotation_error_deg"], localized)
+    for t, (p, r, ok) in enumerate(zip(*per_frame, strict=True), start=1):
+        verdict = "localized" if ok else "not localized"
+        print(f"frame {t}: {verdict}, position error {p:.3f} m, rotation error {r:.2f} deg")
+    summary = errors["last_frame"]
     print(
         f"last frame: {summary['median_pos_m']:.3f} m, {summary['median_rot_deg']:.2f} deg; "
         f"total {time.perf_counter() - start:.0f} s"
     )
-    figure = plot_rounds(result, episode.poses_gt, args.out, scene=scene)
-    print(f"figure: {figure}")
+    print(f"figure: {plot_rounds(result, episode.poses_gt, args.out, scene=scene)}")
     return 0

@@ -4,45 +4,37 @@ from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
-from jaxloc.cli._errors import InputError
-from jaxloc.cli._lidar import check_save_path, describe_map, triplet_config
-from jaxloc.cli._lidar_scans import open_sequence, reading
+from jaxloc.cli._errors import InputError, reading
+from jaxloc.cli._lidar import add_triplet_options, check_save_path, describe_map, triplet_config
+from jaxloc.cli._lidar_scans import add_sequence_options, open_sequence
+from jaxloc.cli._options import command, positive_int
 
 DESCRIPTION = """\
-Builds a TripletLoc/HeLiPR-format instance map and road-surface-normal map from a labelled
-LiDAR sequence, TripletLoc's way: every K-th scan, trunk/pole/traffic-sign points clustered
-into instance centroids (0.1 m voxels, 0.5 m clusters of >= 20 voxels), moved to the map frame
-and fused across scans within 0.5 m; road points binned into 10 m cells (within 80 m of the
-sensor), a robust plane per cell, cells fused within 3.5 m.
+Instance and road-normal maps from a labelled LiDAR sequence (SemanticKITTI, plain, HeLiPR).
 
-SEQ_DIR is a labelled sequence in one of three layouts (detected; --format forces one).
-A SemanticKITTI sequence:
+TripletLoc's way (jaxloc.mapping.MapBuildConfig): trunk, pole and traffic-sign points of every
+K-th scan clustered into instances fused across scans; a robust road plane per cell.
+
+SEQ_DIR is a labelled sequence in one of three layouts (detected; --format forces one):
+SemanticKITTI (the map frame: the velodyne frame of the first scan, T_map_scan = inv(Tr) P Tr)
   SEQ_DIR/velodyne/NNNNNN.bin   float32 x y z intensity (sensor frame)
   SEQ_DIR/labels/NNNNNN.label   uint32: semantic id in the low 16 bits (71 trunk, 80 pole,
                                 81 traffic sign, 40 road), instance in the high 16 bits
   SEQ_DIR/poses.txt             one cam0 pose per scan, 12 numbers (KITTI 3x4, row-major)
-  SEQ_DIR/calib.txt             "Tr: 12 numbers" (velodyne to cam0; P0-P3 lines are ignored)
-The map frame is then the velodyne frame of the first scan: T_map_scan = inv(Tr) P Tr.
-Or a plain folder: NNN.bin with NNN.label beside them (or velodyne/ + labels/) and a poses.txt of
-T_map_scan rows (12 or 16 numbers), no calib.txt. Scans sort by number (0, 11, 102); line i of
-poses.txt belongs to the i-th scan. Either may have times.txt (seconds per scan, KITTI's) and a
-TUM poses.txt ("t x y z qx qy qz qw"), matched to the scans by time.
-Or a HeLiPR / TripletLoc sequence:
-  SEQ_DIR/LiDAR/<sensor>/<stamp>.bin   Ouster (26-byte points), Velodyne (22), Avia (19), Aeva
-                                       (25 or 29) or TripletLoc's Ouster_filterd; <stamp> in ns
-  SEQ_DIR/labels/<stamp>.label         uint16 SPVNAS class id (8 road, 15 trunk, 17 pole,
-                                       18 traffic sign) + uint16 instance per point (or label/)
-  SEQ_DIR/LiDAR_GT/<Sensor>_gt.txt     lines "stamp x y z qx qy qz qw" (LiDAR to world)
---sensor picks the scan folder (default: the only one present, else Ouster). A scan is matched
-to the GT line with its exact stamp; scans without one are left out (a note on stderr), GT lines
-without a scan are ignored. The map frame is the GT's world frame.
+  SEQ_DIR/calib.txt             "Tr: 12 numbers" (velodyne to cam0)
+plain: NNN.bin with NNN.label beside them (or velodyne/ + labels/), poses.txt of T_map_scan rows
+  (12 or 16 numbers; or TUM lines matched by time with times.txt), no calib.txt
+HeLiPR / TripletLoc (the map frame: the GT's world frame; scans without a GT stamp left out)
+  SEQ_DIR/LiDAR/<sensor>/<stamp>.bin   Ouster, Velodyne, Avia, Aeva or Ouster_filterd records
+  SEQ_DIR/labels/<stamp>.label         uint16 class id (15 trunk, 17 pole, 18 sign) + instance
+  SEQ_DIR/LiDAR_GT/<Sensor>_gt.txt     lines "stamp x y z qx qy qz qw"
 
 OUT_DIR receives instances/15.txt, 17.txt, 18.txt (lines "id x y z") and RSN/road_normal.txt
-(lines "x y nx ny nz std_deg"), the format localize-lidar reads. Nothing is written unless the
-whole build succeeds.
+(lines "x y nx ny nz std_deg"), the format localize-lidar reads; nothing unless all succeeds.
 """
 
 EPILOG = """\
@@ -52,11 +44,23 @@ examples:
   jaxloc localize-lidar maps/kitti00 dataset/sequences/00 --every 50
   jaxloc build-lidar-map HeLiPR/KAIST04 maps/KAIST04 --sensor Ouster --every 30
 
---save-map FILE also describes the built map (M2Loc, 3 scales, or the localization settings
-given) and saves it, so that localize-lidar loads it in a second instead of describing it again.
-
-exit status: 0 on success, 2 on missing or malformed files or bad options (one-line message).
+--save-map FILE also describes the built map (m2loc_config's settings, or the localization
+settings given) and saves it: localize-lidar then loads it in a second instead of describing it.
 """
+
+
+def add_parser(commands) -> None:
+    """Register ``build-lidar-map`` on the ``jaxloc`` subcommand parsers."""
+    build = command(commands, "build-lidar-map", DESCRIPTION, EPILOG)
+    build.add_argument("seq_dir", type=Path, metavar="SEQ_DIR", help="labelled sequence folder")
+    build.add_argument("out_dir", type=Path, metavar="OUT_DIR", help="map folder to write")
+    build.add_argument(
+        "--every", type=positive_int, help="use every K-th scan (default MapBuildConfig.every)"
+    )
+    build.add_argument("--save-map", type=Path, metavar="FILE", help="also save it described")
+    build.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_sequence_options(build)
+    add_triplet_options(build)
 
 
 def check_build_lidar_map(args: argparse.Namespace) -> None:
@@ -74,9 +78,10 @@ def run_build_lidar_map(args: argparse.Namespace) -> int:
 
     start = time.perf_counter()
     sequence = open_sequence(args.seq_dir, args)
-    used = len(sequence.bins[:: args.every])
+    config = MapBuildConfig() if args.every is None else MapBuildConfig(every=args.every)
+    used = len(sequence.bins[:: config.every])
     with reading(), tqdm(total=used, unit="scan", disable=args.no_progress) as bar:
-        maps = build_lidar_maps(sequence, MapBuildConfig(every=args.every), bar.update)
+        maps = build_lidar_maps(sequence, config, bar.update)
     instances, normals = maps.instances, maps.road_normals
     triplet_map = None
     if args.save_map is not None:  # describe before writing anything: a bad map writes nothing

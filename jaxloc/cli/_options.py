@@ -1,16 +1,13 @@
-"""Option values checked where they are parsed: argparse ``type=`` functions and a parser whose
-usage errors are one line.
-
-A bad value (``--particles 0``, ``--seed -3``, ``--threshold nan``) ends the command with exit
-status 2 and one line on stderr that names the option and what it accepts, before any file is read
-or anything is compiled.
-"""
+"""Option values checked where they are parsed (``type=`` functions: ``--particles 0`` ends with
+exit status 2 and one line naming the option), list options that take ``20 8 4`` or ``20,8,4``, a
+parser whose usage errors are one line and a help formatter that shows defaults."""
 
 from __future__ import annotations
 
 import argparse
 import math
 import sys
+from collections.abc import Callable
 from typing import NoReturn
 
 
@@ -23,91 +20,108 @@ class Parser(argparse.ArgumentParser):
         sys.exit(2)
 
 
-def _integer(text: str, what: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"want {what}, got {text!r}") from None
+class Formatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions and epilogs as written; an option's help ends with its default, if not None."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        default = action.default
+        if default is None or default is False or default == argparse.SUPPRESS:
+            return action.help or ""
+        shown = " ".join(map(str, default)) if isinstance(default, list | tuple) else default
+        return f"{action.help} (default {shown})".replace("%", "%%")
 
 
-def _real(text: str, what: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"want {what}, got {text!r}") from None
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"want {what}, got {text!r}")
-    return value
+def command(commands, name: str, description: str, epilog: str | None = None) -> Parser:
+    """The subcommand ``name`` of ``commands``; its help is the first line of ``description``."""
+    help = description.split("\n")[0].rstrip(".")
+    return commands.add_parser(
+        name, help=help, description=description, epilog=epilog, formatter_class=Formatter
+    )
 
 
-def positive_int(text: str) -> int:
-    """An integer >= 1."""
-    value = _integer(text, "an integer >= 1")
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"want an integer >= 1, got {text!r}")
-    return value
+def given(**options) -> dict:
+    """The ``options`` that are not None (the others keep the library's defaults)."""
+    return {name: value for name, value in options.items() if value is not None}
 
 
-def count(text: str) -> int:
-    """An integer >= 0."""
-    value = _integer(text, "an integer >= 0")
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"want an integer >= 0, got {text!r}")
-    return value
+def _checker(name: str, convert: Callable, ok: Callable, what: str, plural: str = "") -> Callable:
+    """A ``type=`` function: ``convert(text)`` if ``ok`` of it, else an error wanting ``what``
+    (``plural``: what a list of them wants, :func:`list_of`)."""
 
-
-def seed(text: str) -> int:
-    """A random seed: an integer in [0, 2**32)."""
-    value = _integer(text, "a seed, an integer from 0 to 2**32 - 1")
-    if not 0 <= value < 2**32:
-        raise argparse.ArgumentTypeError(f"want a seed from 0 to 2**32 - 1, got {text!r}")
-    return value
-
-
-def positive_float(text: str) -> float:
-    """A finite number > 0."""
-    value = _real(text, "a finite number > 0")
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"want a finite number > 0, got {text!r}")
-    return value
-
-
-def nonnegative_float(text: str) -> float:
-    """A finite number >= 0."""
-    value = _real(text, "a finite number >= 0")
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"want a finite number >= 0, got {text!r}")
-    return value
-
-
-def at_least(minimum: int):
-    """The ``type=`` of an integer option >= ``minimum`` (``at_least(4)("2")`` fails with
-    ``want an integer >= 4, got '2'``)."""
-
-    def check(text: str) -> int:
-        value = _integer(text, f"an integer >= {minimum}")
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"want an integer >= {minimum}, got {text!r}")
+    def check(text: str):
+        try:
+            value = convert(text)
+        except ValueError:
+            value = None
+        if value is None or not ok(value):
+            raise argparse.ArgumentTypeError(f"want {what}, got {text!r}")
         return value
 
-    check.__name__ = check.__qualname__ = f"at_least_{minimum}"
+    check.__name__ = check.__qualname__ = name
+    check.__doc__ = f"{what[0].upper()}{what[1:]}."
+    check.plural = plural
     return check
 
 
-def stride_list(text: str) -> tuple[int, ...]:
-    """Comma-separated integers >= 1, one pixel stride per round (``20,8,4``)."""
-    try:
-        strides = tuple(int(part) for part in text.split(","))
-    except ValueError:
-        strides = ()
-    if not strides or min(strides) < 1:
-        raise argparse.ArgumentTypeError(f"want positive integers like 20,8,4, got {text!r}")
-    return strides
+positive_int = _checker(
+    "positive_int", int, lambda v: v >= 1, "an integer >= 1", "positive integers"
+)
+count = _checker("count", int, lambda v: v >= 0, "an integer >= 0")
+seed = _checker("seed", int, lambda v: 0 <= v < 2**32, "a seed from 0 to 2**32 - 1")
+positive_float = _checker(
+    "positive_float", float, lambda v: math.isfinite(v) and v > 0, "a finite number > 0",
+    "finite numbers > 0",
+)  # fmt: skip
+nonnegative_float = _checker(
+    "nonnegative_float", float, lambda v: math.isfinite(v) and v >= 0, "a finite number >= 0",
+    "finite numbers >= 0",
+)  # fmt: skip
 
 
-def fraction(text: str) -> float:
-    """A finite number in [0, 1]."""
-    value = _real(text, "a number from 0 to 1")
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"want a number from 0 to 1, got {text!r}")
-    return value
+def at_least(minimum: int) -> Callable:
+    """The ``type=`` of an integer option >= ``minimum``."""
+    return _checker(f"at_least_{minimum}", int, lambda v: v >= minimum, f"an integer >= {minimum}")
+
+
+def list_of(item: Callable, example: str) -> Callable:
+    """The ``type=`` of a list option (:func:`add_list`): a comma-separated list of ``item``
+    values, so that ``--strides 20 8 4`` and ``--strides 20,8,4`` read the same."""
+
+    def check(text: str) -> tuple:
+        try:
+            return tuple(item(part) for part in text.split(","))
+        except argparse.ArgumentTypeError:
+            spaced = example.replace(",", " ")
+            message = f"want {item.plural} like {example} or {spaced}, got {text!r}"
+            raise argparse.ArgumentTypeError(message) from None
+
+    check.__name__ = check.__qualname__ = f"list_of_{item.__name__}"
+    return check
+
+
+class _Flatten(argparse.Action):
+    """Stores the values of a list option as one tuple (``count`` of them, where given)."""
+
+    def __init__(self, *args, count: int | None = None, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.count = count
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        flat = tuple(value for part in values for value in part)
+        if self.count is not None and len(flat) != self.count:
+            parser.error(f"argument {option_string}: want {self.count} values, got {len(flat)}")
+        setattr(namespace, self.dest, flat)
+
+
+def add_list(add: Callable, name: str, item: Callable, example: str, help: str, **kwargs) -> None:
+    """A list option ``name`` (``add``: a parser's ``add_argument``): ``item`` values separated by
+    spaces or commas (``example``, e.g. ``20,8,4``), as a tuple (None when not given)."""
+    spaced = example.replace(",", " ")
+    add(
+        name,
+        type=list_of(item, example),
+        nargs="+",
+        action=_Flatten,
+        help=f"{help}; '{spaced}' or '{example}'",
+        **kwargs,
+    )

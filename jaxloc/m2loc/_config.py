@@ -148,6 +148,18 @@ class TripletConfig(eqx.Module):
             raise ValueError(f"rot_delta_deg must be >= 0, got {self.rot_delta_deg}")
 
 
+#: M2Loc's settings as published, the ones ``m2loc_config(robust=True)`` changes: cliques may
+#: join associations of one vertex, one registration attempt, no clique hypotheses, no uniqueness
+#: check. ``dataclasses.replace(config, **PUBLISHED_SETTINGS)`` makes a robust configuration (a
+#: saved map's) the paper's.
+PUBLISHED_SETTINGS = {
+    "one_to_one": False,
+    "registration_attempts": 1,
+    "hypotheses": 0,
+    "ambiguity_margin": None,
+}
+
+
 def tripletloc_config(**overrides) -> TripletConfig:
     """TripletLoc: one scale [0, 20] m, angle + edge-length histograms (456 dims)."""
     return TripletConfig(**overrides)
@@ -181,4 +193,6 @@ def m2loc_config(
         defaults.update(one_to_one=True, hypotheses=256)
         if overrides.get("hypotheses", 256) > 0:
             defaults["ambiguity_margin"] = 0.0
+    else:
+        defaults.update(PUBLISHED_SETTINGS)
     return TripletConfig(descriptor=descriptor, **{**defaults, **overrides})

@@ -224,6 +224,21 @@ class _ScanList:
         return f"scan {index}"
 
 
+def first_query_capacity(source: ScanSource, config: TripletConfig) -> tuple[int, ...]:
+    """``(capacity,)``, the padded size of the query of the first scan of ``source`` alone (for
+    :func:`~jaxloc.m2loc.prepare_queries` to compile its programs ahead), or () where no query
+    program would run for it: no scan, fewer than 3 instances, or a scan that does not read or
+    that :func:`~jaxloc.m2loc.localize_scan` refuses (its error comes when it is localized)."""
+    if not len(source):
+        return ()
+    try:
+        scan = source.instances(0, config.descriptor.classes)
+        padded = pad_scan(scan.points, scan.labels, config)
+    except (OSError, ValueError):
+        return ()
+    return (padded.points.shape[0],) if len(scan.points) >= 3 else ()
+
+
 def _window_sizes(accumulate: int, config: DriveConfig) -> tuple[int, int, int]:
     """(K, M, N) of a drive: (1, 1, 0) for single scans."""
     if accumulate < 1:

@@ -1,4 +1,5 @@
-"""M2Loc metrics: success rate P, RTE/RRE over successes, clique sizes, times (numpy)."""
+"""M2Loc metrics: success rate P, RTE/RRE over successes, clique sizes, times (numpy), and the
+record of one scan of a drive."""
 
 from __future__ import annotations
 
@@ -6,7 +7,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from jaxloc.metrics import position_error, rotation_error_deg
+from jaxloc.m2loc._drive import STATUS_NAMES, DriveStep
+from jaxloc.metrics import pose_errors
 
 #: TripletLoc/M2Loc success threshold on the translation error: RTE < 7.5 m.
 SUCCESS_RTE_M = 7.5
@@ -16,11 +18,14 @@ SUCCESS_RRE_DEG = 10.0
 
 def localization_errors(T_est: np.ndarray, T_gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """RTE (m) and RRE (deg, geodesic) between 4x4 poses (..., 4, 4)."""
-    T_est, T_gt = np.asarray(T_est, np.float64), np.asarray(T_gt, np.float64)
-    return (
-        position_error(T_est[..., :3, 3], T_gt[..., :3, 3]),
-        rotation_error_deg(T_est[..., :3, :3], T_gt[..., :3, :3]),
-    )
+    return pose_errors(T_est, T_gt)
+
+
+def localization_success(T_est: np.ndarray, T_gt: np.ndarray, valid) -> np.ndarray:
+    """(...,) bool, TripletLoc's and M2Loc's success of each pose (..., 4, 4): valid, RTE <
+    :data:`SUCCESS_RTE_M` and RRE < :data:`SUCCESS_RRE_DEG`."""
+    rte, rre = localization_errors(T_est, T_gt)
+    return np.asarray(valid, bool) & (rte < SUCCESS_RTE_M) & (rre < SUCCESS_RRE_DEG)
 
 
 def summarize_localization(
@@ -36,7 +41,7 @@ def summarize_localization(
     :func:`~jaxloc.m2loc.query`'s untimed results)."""
     rte, rre = localization_errors(T_est, T_gt)
     valid = np.asarray(valid, bool)
-    success = valid & (rte < SUCCESS_RTE_M) & (rre < SUCCESS_RRE_DEG)
+    success = localization_success(T_est, T_gt, valid)
 
     def stats(values):
         values = np.asarray(values, np.float64)
@@ -57,3 +62,38 @@ def summarize_localization(
     ):
         out[f"{name}_mean"], out[f"{name}_std"] = stats(values)
     return out
+
+
+def step_record(step: DriveStep, T_gt: np.ndarray | None = None, track: bool = False) -> dict:
+    """The record of one scan of a drive (a ``DriveStep``) as JSON-ready
+    values: its instances (in all and per class), ``valid``, ``ambiguous``, ``clique_size``,
+    ``scales_used``, ``T_map_scan`` (rounded to 1e-6), the times (ms, compile s); with ``T_gt``
+    its ``rte_m`` and ``rre_deg``; with ``track`` the tracking status (:data:`STATUS_NAMES`);
+    for a fused window the scans and instances fused (and, untracked, whether its pose was
+    refused for a small clique)."""
+    scan, result = step.instances, step.result
+    labels = np.asarray(scan.labels)
+    record = {
+        "instances": int(len(scan.points)),
+        "instances_per_class": {str(int(c)): int(np.sum(labels == c)) for c in np.unique(labels)},
+        "valid": bool(result.valid),
+        "ambiguous": bool(result.ambiguous),
+        "clique_size": int(result.clique_size),
+        "scales_used": int(result.scales_used),
+        "T_map_scan": np.round(result.pose, 6).tolist(),
+        "load_ms": round(step.load_ms, 3),
+        "descriptor_ms": round(result.descriptor_time_ms, 3),
+        "match_ms": round(result.match_time_ms, 3),
+        "compile_s": round(step.compile_s, 3),
+    }
+    if T_gt is not None:
+        rte, rre = localization_errors(result.pose, T_gt)
+        record["rte_m"], record["rre_deg"] = float(rte), float(rre)
+    if track:
+        record["track"] = STATUS_NAMES[step.status]
+    if step.fused is not None:
+        record["fused_scans"] = int(step.fused.members.shape[1])
+        record["fused_instances"] = len(step.fused.points)
+        if not track:
+            record["small_clique"] = step.small_clique
+    return record

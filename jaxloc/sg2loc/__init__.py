@@ -10,8 +10,9 @@ info)`` on a :class:`ParticleState`, a :class:`Frame` and a :class:`StepConfig` 
 configuration, which :func:`localize` and the streaming filter derive from their
 :class:`SG2LocConfig`), and :func:`run_pass` (a ``lax.scan`` of it over the frames). What each
 particle sees: :func:`render`, :func:`render_batch`. The scores' settings:
-:class:`ObservationConfig`; KLD-sampling: :class:`KLDConfig`; the per-frame verdict:
-:class:`VerdictConfig`, :class:`Verdict`.
+:class:`ObservationConfig` (and :func:`check_ssim_strides`, whether a stride leaves the colour
+score enough rays); KLD-sampling: :class:`KLDConfig` (:func:`kld_for_capacity`, the bounds for a
+particle capacity); the per-frame verdict: :class:`VerdictConfig`, :class:`Verdict`.
 
 Around them: :mod:`~jaxloc.sg2loc.refine` (6-DoF pose refinement), :mod:`~jaxloc.sg2loc.learn`
 (learning the likelihood parameters), :mod:`~jaxloc.sg2loc.retrieval` (scene retrieval),
@@ -40,9 +41,11 @@ __all__ = [
     "Verdict",
     "VerdictConfig",
     "carry_back",
+    "check_ssim_strides",
     "default_verdict",
     "figures",
     "frames_on_grid",
+    "kld_for_capacity",
     "learn",
     "localize",
     "online",
@@ -76,8 +79,8 @@ if TYPE_CHECKING:  # where each public name comes from (jaxloc._lazy imports it 
     )
     from jaxloc.sg2loc._particles import PAPER_HEIGHTS, ParticleState
     from jaxloc.sg2loc._rendering import Render, render, render_batch
-    from jaxloc.sg2loc._resampling import KLDConfig
-    from jaxloc.sg2loc._scores import ObservationConfig
+    from jaxloc.sg2loc._resampling import KLDConfig, kld_for_capacity
+    from jaxloc.sg2loc._scores import ObservationConfig, check_ssim_strides
     from jaxloc.sg2loc._sequence import FrameSequence
     from jaxloc.sg2loc._verdict import Verdict, VerdictConfig, default_verdict
 

@@ -45,7 +45,6 @@ from jaxloc.sg2loc._progress import tick_after
 from jaxloc.sg2loc._rendering import render_batch
 from jaxloc.sg2loc._resampling import KLDConfig, kld_resample
 from jaxloc.sg2loc._scores import (
-    SSIM_WINDOW,
     ObservationConfig,
     PatchMatch,
     Scores,
@@ -141,13 +140,6 @@ class StepConfig(eqx.Module):
     def __check_init__(self) -> None:
         check_engine_name(self.engine)
         check_particle_chunk(self.particle_chunk)
-        h, w = self.grid.shape
-        if self.observation.use_color and min(h, w) < SSIM_WINDOW:
-            raise ValueError(
-                f"the colour score's SSIM needs a ray grid of at least {SSIM_WINDOW} x "
-                f"{SSIM_WINDOW} rays, but this one is {h} x {w} (image {self.camera.width} x "
-                f"{self.camera.height}): use a smaller stride or turn the colour score off"
-            )
 
     @property
     def update(self) -> UpdateConfig:

@@ -58,7 +58,7 @@ from jaxloc.sg2loc._particles import (
 )
 from jaxloc.sg2loc._progress import FrameBar
 from jaxloc.sg2loc._resampling import KLDConfig
-from jaxloc.sg2loc._scores import ObservationConfig
+from jaxloc.sg2loc._scores import ObservationConfig, check_ssim_strides
 from jaxloc.sg2loc._sequence import FrameSequence
 from jaxloc.sg2loc._verdict import VerdictConfig, default_verdict
 from jaxloc.sharding import check_divisible, pin_split
@@ -288,8 +288,9 @@ def localize(
 
     Raises:
         TypeError: ``scene`` or ``sequence`` of the wrong type.
-        ValueError: embeddings of another length than the map's, or a capacity that does not
-            split evenly over ``mesh``.
+        ValueError: embeddings of another length than the map's, a capacity that does not
+            split evenly over ``mesh``, or with colour a stride whose ray grid is smaller than
+            SSIM's window (:func:`~jaxloc.sg2loc.check_ssim_strides`).
     """
     config = SG2LocConfig() if config is None else config
     step_configs = _checked(scene, sequence, config, mesh)
@@ -432,6 +433,10 @@ def _checked(scene, sequence, config: SG2LocConfig, mesh) -> tuple[StepConfig, .
     used_depth = observation.use_depth and sequence.depth is not None
     used_color = observation.use_color and sequence.rgb is not None
     observation = dataclasses.replace(observation, use_depth=used_depth, use_color=used_color)
+    if used_color:
+        width, height = sequence.camera.width, sequence.camera.height
+        setting, otherwise = "SG2LocConfig(strides=...)", "ObservationConfig(use_color=False)"
+        check_ssim_strides(config.strides, width, height, setting, otherwise)
     region = Region.of_scene(scene) if config.region is None else config.region
     verdict = default_verdict(used_depth) if config.verdict is None else config.verdict
     return tuple(

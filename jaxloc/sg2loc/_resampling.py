@@ -20,6 +20,7 @@ KLD-sampling, exactly as implemented here (:func:`kld_resample`):
 
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple
 
 import equinox as eqx
@@ -145,6 +146,16 @@ class KLDConfig(eqx.Module):
             raise ValueError(
                 f"need 1 <= min_particles <= max_particles, got {int(lower)}, {int(upper)}"
             )
+
+
+def kld_for_capacity(capacity: int, kld: KLDConfig | None = None) -> KLDConfig:
+    """``kld`` (default :class:`KLDConfig`) for a buffer of ``capacity`` particles: the count may
+    fill the buffer (``max_particles = capacity``) and keeps at least ``min_particles`` or the
+    whole buffer where it is smaller. What an :class:`~jaxloc.sg2loc.SG2LocConfig` of that
+    ``capacity`` is given by the command line."""
+    kld = KLDConfig() if kld is None else kld
+    lower = min(int(kld.min_particles), capacity)
+    return dataclasses.replace(kld, min_particles=lower, max_particles=capacity)
 
 
 def kld_bound(

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from jaxloc.camera import stride_grid_shape
 from jaxloc.sg2loc._convert import as_float32
 
 #: Semantic score variants (``ObservationConfig.semantic_variant``; "gated" the default).
@@ -45,6 +46,42 @@ SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
 #: Side of SSIM's box window (rays): a colour score needs a ray grid at least this big.
 SSIM_WINDOW = 7
+
+
+def largest_ssim_stride(width: int, height: int) -> int:
+    """The largest stride whose ray grid (:func:`jaxloc.camera.stride_grid_shape`) on a
+    ``width x height`` image holds SSIM's window, :data:`SSIM_WINDOW` rays a side (0: none, the
+    image is smaller than the window)."""
+    fits = (s for s in range(min(width, height), 0, -1) if _ssim_fits(s, width, height))
+    return next(fits, 0)
+
+
+def _ssim_fits(stride: int, width: int, height: int) -> bool:
+    return min(stride_grid_shape(stride, width, height)) >= SSIM_WINDOW
+
+
+def check_ssim_strides(
+    strides, width: int, height: int, setting: str = "strides", otherwise: str | None = None
+) -> None:
+    """Raise a one-line ValueError unless every stride of ``strides`` casts at least SSIM's
+    :data:`SSIM_WINDOW` x :data:`SSIM_WINDOW` rays on a ``width x height`` image (what the colour
+    score needs). The message starts with ``setting``, the setting that fixes it
+    (``"SG2LocConfig(strides=...)"``, a command-line option),
+    names the largest stride that fits and ends with ``otherwise``, another way out (e.g. turning
+    the colour score off)."""
+    for stride in strides:
+        if _ssim_fits(stride, width, height):
+            continue
+        rows, cols = stride_grid_shape(stride, width, height)
+        largest = largest_ssim_stride(width, height)
+        fix = f"use strides of at most {largest}"
+        if not largest:
+            fix = f"no stride fits an image under {SSIM_WINDOW} px a side"
+        raise ValueError(
+            f"{setting}: stride {stride} gives a {rows} x {cols} ray grid at {width} x {height}, "
+            f"smaller than SSIM's {SSIM_WINDOW} x {SSIM_WINDOW} window; {fix}"
+            + (f", or {otherwise}" if otherwise else "")
+        )
 
 
 def _check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:

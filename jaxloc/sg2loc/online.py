@@ -47,7 +47,7 @@ from jaxloc.sg2loc._filter import Frame, Region, StepConfig, grid_pixels, step
 from jaxloc.sg2loc._localization import SG2LocConfig, step_config
 from jaxloc.sg2loc._particles import PAPER_HEIGHTS, ParticleState, init_region, inject_uniform
 from jaxloc.sg2loc._resampling import KLDConfig
-from jaxloc.sg2loc._scores import ObservationConfig
+from jaxloc.sg2loc._scores import ObservationConfig, check_ssim_strides
 from jaxloc.sg2loc._sequence import FrameSequence
 from jaxloc.sg2loc._verdict import Verdict, VerdictConfig, default_verdict
 
@@ -170,8 +170,9 @@ def init(
 
     Raises:
         TypeError: ``scene`` or ``camera`` of the wrong type.
-        ValueError: a grid too coarse for the colour score (naming
-            ``SG2LocConfig(strides=)``), or a bad ``patch_shape``.
+        ValueError: a bad ``patch_shape``, or with the colour score on, a stride whose ray grid
+            on the camera's image is smaller than SSIM's window
+            (:func:`~jaxloc.sg2loc.check_ssim_strides`, naming ``SG2LocConfig(strides=)``).
     """
     if isinstance(config, OnlineConfig):
         config, patch_shape = config.as_sg2loc()
@@ -183,6 +184,9 @@ def init(
     patch_shape = tuple(patch_shape)
     if len(patch_shape) != 2 or any(not isinstance(n, int) or n < 1 for n in patch_shape):
         raise ValueError(f"patch_shape must be two positive ints, got {patch_shape!r}")
+    if config.observation.use_color:
+        setting, otherwise = "SG2LocConfig(strides=...)", "ObservationConfig(use_color=False)"
+        check_ssim_strides(config.strides[:1], camera.width, camera.height, setting, otherwise)
     region = Region.of_scene(scene) if config.region is None else config.region
     round_config = step_config(config, camera, config.strides[0], patch_shape, region)
     pixels = jnp.asarray(np.stack(grid_pixels(camera, round_config.grid)), jnp.int32)
@@ -362,6 +366,10 @@ def filter_sequence(
         raise TypeError(f"sequence must be a jaxloc.FrameSequence, got {type(sequence).__name__}")
     if isinstance(config, OnlineConfig):
         config, _ = config.as_sg2loc()
+    config = SG2LocConfig() if config is None else config
+    if sequence.rgb is None:  # no colour to score: the stride need not suit SSIM
+        observation = dataclasses.replace(config.observation, use_color=False)
+        config = dataclasses.replace(config, observation=observation)
     state = init(key, scene, sequence.camera, config, patch_shape=tuple(sequence.patch_shape))
     estimates = []
     for t in range(sequence.num_frames):

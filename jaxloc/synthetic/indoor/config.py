@@ -144,7 +144,8 @@ class SensorConfig:
         if self.width < self.patch_cols or self.height < self.patch_rows or self.patch_rows < 1:
             raise ValueError(
                 f"image {self.width}x{self.height} must hold the {self.patch_rows}x"
-                f"{self.patch_cols} patch grid (at least one pixel per patch)"
+                f"{self.patch_cols} patch grid, a pixel per patch at least: want width >= "
+                f"{self.patch_cols} and height >= {self.patch_rows}"
             )
         if not 0 < self.hfov_deg < 180:
             raise ValueError(f"hfov_deg must be in (0, 180), got {self.hfov_deg}")
