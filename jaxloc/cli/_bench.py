@@ -19,7 +19,7 @@ examples:
   jaxloc bench raycast --poses 256 --width 320 --height 180   # rays/s of render_batch
   jaxloc bench filter --particles 2500           # s/frame of one SG2Loc filter step
   jaxloc bench triplet --queries 50 --scales 3   # ms/query of M2Loc
-  jaxloc bench triplet --map ../shared/data/helipr_instance_maps/KAIST04
+  jaxloc bench triplet --map maps/KAIST04
 
 Times are after compilation (printed apart), wall and process CPU time. The comparisons with
 peers (Embree, networkx) are the scripts in benchmarks/ of the repository.

@@ -43,8 +43,8 @@ it was localized: tracked, relocalized, lost, or pending confirmation) and the t
 
 EPILOG = f"""\
 examples:
-  jaxloc localize-lidar ../shared/data/helipr_instance_maps/KAIST04 \\
-      ../shared/data/semantickitti_scan/000000.bin
+  jaxloc localize-lidar maps/KAIST04 \\
+      scans/000000.bin
   jaxloc localize-lidar MAP scans/*.txt --gt poses.txt --json > result.json
   jaxloc localize-lidar MAP_DIR scans/*.bin --save-map map.npz   # describe once, save
   jaxloc localize-lidar map.npz KAIST05 --every 10 --poses-out kaist05.tum
