@@ -24,6 +24,7 @@ from jaxloc.m2loc import DriveResult, TrackStatus
 from jaxloc.m2loc._drive import DriveStep, ScanInstances
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc import FrameSequence, SG2LocResult
+from jaxloc.sg2loc.online import Estimate
 
 rerun_chunk = pytest.importorskip("rerun.chunk")
 
@@ -119,6 +120,17 @@ def test_an_sg2loc_run_reads_back_as_logged(sg2loc_run, tmp_path):
     np.testing.assert_allclose(np.ravel(errors), [0.1, 0.1], atol=1e-6)
     assert len(_rows(found["/world/camera/image/depth"], "DepthImage:buffer")) == FRAMES
     assert len(_rows(found["/world/camera"], "Transform3D:translation")) == FRAMES
+
+
+def test_a_streamed_run_has_poses_and_no_particles(sg2loc_run, tmp_path):
+    """The stacked estimates of ``online.filter_sequence`` (``pose``, ``localized``)."""
+    scene, result, sequence, _ = sg2loc_run
+    estimates = Estimate(result.poses, result.localized, *([None] * 6))
+    found = _read(write_rerun(tmp_path / "online.rrd", scene, estimates, sequence))
+    assert not any(entity.startswith("/world/particles") for entity in found)
+    current = _rows(found["/world/trajectory/estimate/current"], "Arrows3D:origins")
+    np.testing.assert_allclose(np.asarray(current)[:, 0], result.poses[:, :3], atol=1e-6)
+    assert len(_rows(found["/world/camera/image/rgb"], "EncodedImage:blob")) == FRAMES
 
 
 def test_an_m2loc_drive_reads_back_as_logged(tmp_path):

@@ -10,6 +10,7 @@ import shutil
 
 import numpy as np
 import pytest
+import trimesh
 from _bag_fixtures import KINDS, Messages, write_bag
 from PIL import Image
 
@@ -18,6 +19,8 @@ from jaxloc.io.camera_recording import open_camera_recording
 from jaxloc.io.camera_sequence import read_camera_sequence
 from jaxloc.io.poses import write_tum
 from jaxloc.io.rosbag_camera import is_bag, read_bag_camera_sequence
+from jaxloc.io.scene_map import save_scene
+from jaxloc.scene import SceneGraph
 from jaxloc.synthetic import indoor
 from jaxloc.synthetic.indoor.export import write_scannet_export
 
@@ -65,10 +68,13 @@ def _odometry_samples(poses):
     return [(T0 + int(a), T) for a, T in zip(at, out, strict=True)]
 
 
-def camera_messages(folder, poses, kind, *, colour="jpeg", odometry="odom", labels=None):
+def camera_messages(
+    folder, poses, kind, *, colour="jpeg", odometry="odom", labels=None, depth="16UC1",
+    label_encoding="mono16",
+):  # fmt: skip
     """The episode's messages: colour (JPEG CompressedImage with the folder's bytes, or raw
-    ``colour`` encoding), 16UC1 depth, CameraInfo, /tf_static, and odometry ("odom": an Odometry
-    topic; "tf": /tf; None)."""
+    ``colour`` encoding), depth (the folder's millimetres as 16UC1, or metres as 32FC1),
+    CameraInfo, /tf_static, and odometry ("odom": an Odometry topic; "tf": /tf; None)."""
     m, out = Messages(kind), []
     K = np.loadtxt(folder / "intrinsic" / "intrinsic_color.txt")
     for t, stamp in enumerate(STAMPS):
@@ -81,6 +87,7 @@ def camera_messages(folder, poses, kind, *, colour="jpeg", odometry="odom", labe
             pixels = {
                 "rgb8": rgb,
                 "bgr8": rgb[..., ::-1],
+                "mono8": rgb[..., 0],
                 "rgba8": np.dstack([rgb, np.full(rgb.shape[:2], 255, np.uint8)]),
                 "bgra8": np.dstack([rgb[..., ::-1], np.zeros(rgb.shape[:2], np.uint8)]),
             }
@@ -99,7 +106,8 @@ def camera_messages(folder, poses, kind, *, colour="jpeg", odometry="odom", labe
                     m.camera_info(stamp, CAM_FRAME, K, (64, 48))))  # fmt: skip
         if labels is not None:
             out.append(("/segmentation", "sensor_msgs/msg/Image", stamp,
-                        m.image(stamp, CAM_FRAME, labels[t], "mono16")))  # fmt: skip
+                        m.image(stamp, CAM_FRAME, labels[t].astype(np.uint16 if label_encoding
+                                == "mono16" else np.uint8), label_encoding)))  # fmt: skip
     static = m.tf([(0, "base_link", CAM_FRAME, T_BASE_CAM)])
     out.append(("/tf_static", "tf2_msgs/msg/TFMessage", T0 - PERIOD, static))
     for stamp, T in _odometry_samples(poses) if odometry else []:
@@ -119,12 +127,12 @@ def _embeddings_by_stamp(folder, target):
     return target
 
 
-def _assert_same_query(bag_rec, folder_rec, rgb_exact=True):
+def _assert_same_query(bag_rec, folder_rec, rgb_exact=True, depth_atol=0.0):
     a, b = bag_rec.sequence, folder_rec.sequence
     assert bag_rec.format == "rosbag" and bag_rec.frame_ids == folder_rec.frame_ids
     assert a.camera == b.camera and bag_rec.camera_native == folder_rec.camera_native
     np.testing.assert_array_equal(a.patch_embeddings, b.patch_embeddings)
-    np.testing.assert_array_equal(a.depth, b.depth)
+    np.testing.assert_allclose(a.depth, b.depth, rtol=0, atol=depth_atol)
     if rgb_exact:
         np.testing.assert_array_equal(a.rgb, b.rgb)
     np.testing.assert_allclose(a.ego_motion, b.ego_motion, atol=1e-6)  # float32
@@ -153,13 +161,18 @@ def test_a_bag_opens_to_the_folders_query(episode_folder, kind, tmp_path):
     _assert_same_query(resized, read_camera_sequence(folder, width=32, step=2), rgb_exact=False)
 
 
-@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "rgba8", "bgra8"])
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "rgba8", "bgra8", "mono8"])
 def test_raw_colour_tf_odometry_and_label_topic(episode_folder, encoding, tmp_path):
-    """Raw colour in every encoding, the /tf tree as odometry, label images from a mono16 topic
-    made into embeddings as the folder's label images are, a PoseStamped ground-truth topic."""
+    """Raw colour in every encoding, 32FC1 depth (metres), the /tf tree as odometry, label images
+    from a mono16 or mono8 topic made into embeddings as the folder's label images are, a
+    PoseStamped ground-truth topic."""
     root, folder, poses, labels = episode_folder
-    kind = "mcap" if encoding in ("rgb8", "bgra8") else "ros1"
-    messages = camera_messages(folder, poses, kind, colour=encoding, odometry="tf", labels=labels)
+    kind = "mcap" if encoding in ("rgb8", "bgra8", "mono8") else "ros1"
+    metres = encoding in ("bgr8", "bgra8")
+    messages = camera_messages(
+        folder, poses, kind, colour=encoding, odometry="tf", labels=labels,
+        depth="32FC1" if metres else "16UC1", label_encoding="mono8" if metres else "mono16",
+    )  # fmt: skip
     m = Messages(kind)
     messages += [("/gt", "geometry_msgs/msg/PoseStamped", s, m.pose_stamped(s, "map", T))
                  for s, T in zip(STAMPS, poses, strict=True)]  # fmt: skip
@@ -176,7 +189,12 @@ def test_raw_colour_tf_odometry_and_label_topic(episode_folder, encoding, tmp_pa
     reference = read_camera_sequence(
         labelled, labels_dir=labelled / "labels", classes=classes, patch_shape=(3, 4)
     )
-    _assert_same_query(recording, reference)
+    if encoding == "mono8":  # grey colour: compare the colour with the folder's made grey
+        grey = np.asarray(reference.sequence.rgb)[..., :1]
+        np.testing.assert_allclose(np.asarray(recording.sequence.rgb), np.repeat(grey, 3, -1),
+                                   atol=1 / 255)  # fmt: skip
+    _assert_same_query(recording, reference, rgb_exact=encoding != "mono8",
+                       depth_atol=1e-6 if metres else 0.0)  # fmt: skip
     np.testing.assert_allclose(recording.poses_gt, reference.poses_gt, atol=1e-9)
 
 
@@ -251,6 +269,12 @@ def test_bad_bags_are_one_line_naming_the_bag_and_topic(episode_folder, tmp_path
                if t == DEPTH else (t, k, s, msg) for t, k, s, msg in shifted]  # fmt: skip
     message = _refused(tmp_path, "mcap", shifted, DEPTH)
     assert "has no message within 0.02 s of frame 0" in message
+    two_depths = good + [("/depth2", *m[1:]) for m in good if m[0] == DEPTH]
+    message = _refused(tmp_path, "mcap", two_depths, DEPTH, "/depth2")
+    assert "2 depth image topics" in message and "depth_topic=" in message
+    bag = write_bag(tmp_path / "two_depths", "mcap", two_depths)
+    without = read_bag_camera_sequence(bag, embeddings_dir=tmp_path / "e", use_depth=False)
+    assert without.sequence.depth is None
     no_odometry = [m for m in good if m[0] != "/odom"]
     message = _refused(tmp_path, "mcap", no_odometry, COLOR)
     assert "no poses for the ego-motion" in message
@@ -267,3 +291,56 @@ def test_a_truncated_bag_is_one_line_naming_it(episode_folder, kind, tmp_path):
     with pytest.raises(ValueError, match=r"^[^\n]*: not a readable bag \(") as info:
         read_bag_camera_sequence(bag)
     assert str(info.value).startswith(str(bag))
+
+
+def test_depth_of_its_own_size_with_its_camera_info(episode_folder, tmp_path):
+    """Depth at half the colour size with a CameraInfo beside it lands on the colour pixels as a
+    folder's depth with its intrinsic_depth.txt does; without that CameraInfo, one line."""
+    root, folder, poses, _ = episode_folder
+    half = tmp_path / "half"
+    shutil.copytree(folder, half)
+    K = np.loadtxt(folder / "intrinsic" / "intrinsic_color.txt")
+    K_depth = K.copy()
+    K_depth[[0, 1], [0, 1]] /= 2
+    K_depth[[0, 1], 2] = (K[[0, 1], 2] + 0.5) / 2 - 0.5
+    np.savetxt(half / "intrinsic" / "intrinsic_depth.txt", K_depth)  # %.18e: exact
+    m = Messages("sqlite3")
+    messages = [msg for msg in camera_messages(folder, poses, "sqlite3") if msg[0] != DEPTH]
+    for t, stamp in enumerate(STAMPS):
+        mm = np.asarray(Image.open(folder / "depth" / f"{t}.png")).astype(np.uint16)[::2, ::2]
+        Image.fromarray(mm).save(half / "depth" / f"{t}.png")
+        messages.append((DEPTH, "sensor_msgs/msg/Image", stamp, m.image(stamp, CAM_FRAME, mm,
+                                                                         "16UC1")))  # fmt: skip
+    info = ("/camera/depth/camera_info", "sensor_msgs/msg/CameraInfo", STAMPS[0],
+            m.camera_info(STAMPS[0], CAM_FRAME, K_depth, (32, 24)))  # fmt: skip
+    bag = write_bag(tmp_path / "rec", "sqlite3", [*messages, info])
+    embeddings = _embeddings_by_stamp(folder, tmp_path / "e")
+    recording = read_bag_camera_sequence(bag, embeddings_dir=embeddings)
+    _assert_same_query(recording, read_camera_sequence(half))
+    assert np.count_nonzero(recording.sequence.depth) > 0.5 * recording.sequence.depth.size
+    message = _refused(tmp_path, "sqlite3", messages, DEPTH)
+    assert "is 32x24, /camera/color/image_raw/compressed 64x48" in message
+    assert "depth_info_topic=" in message
+
+
+def test_the_opener_reads_label_topics_through_the_maps_classes(episode_folder, tmp_path):
+    """``open_camera_recording(map_file=, label_topic=)`` is the bag reader given the map's class
+    embeddings; folder options for a bag and bag options for a folder are refused."""
+    root, folder, poses, labels = episode_folder
+    classes = ClassEmbeddings.onehot(CLASS_IDS)
+    box = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    save_scene(SceneGraph.from_meshes([box], [1], np.eye(3)[:1]), tmp_path / "map.npz", classes)
+    bag = write_bag(tmp_path / "rec", "mcap", camera_messages(folder, poses, "mcap", labels=labels))
+    opened = open_camera_recording(
+        bag, map_file=tmp_path / "map.npz", label_topic="/segmentation", patch_shape=(3, 4)
+    )
+    direct = read_bag_camera_sequence(
+        bag, label_topic="/segmentation", classes=classes, patch_shape=(3, 4)
+    )
+    np.testing.assert_array_equal(
+        opened.sequence.patch_embeddings, direct.sequence.patch_embeddings
+    )
+    with pytest.raises(ValueError, match="label images come from label_topic, not labels_dir"):
+        open_camera_recording(bag, labels_dir=tmp_path)
+    with pytest.raises(ValueError, match=r"export: image_topic, gt apply to ROS bags only"):
+        open_camera_recording(folder, image_topic="/x", gt=tmp_path / "gt.tum")

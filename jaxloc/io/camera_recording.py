@@ -96,11 +96,17 @@ def open_camera_recording(
         step: every ``step``-th frame; max_frames: at most this many frames.
         use_depth: read the depth images into the query.
         use_rgb: read the colour images into the query.
-        image_topic, depth_topic, camera_info_topic, depth_info_topic, odometry_topic,
-            odometry_frame, label_topic, gt_topic: a bag's topics and odometry frame (default:
-            the only one of each kind; :func:`~jaxloc.io.rosbag_camera.read_bag_camera_sequence`);
-            a bag's label images come from ``label_topic``, its embedding files
-            (``embeddings_dir``) are named by the frame's stamp in nanoseconds.
+        image_topic: a bag's colour topic (default: the only one; the topics and their
+            defaults: :func:`~jaxloc.io.rosbag_camera.read_bag_camera_sequence`; a bag's
+            embedding files in ``embeddings_dir`` are named by the frame's stamp in ns).
+        depth_topic: a bag's depth topic.
+        camera_info_topic: a bag's colour CameraInfo topic.
+        depth_info_topic: a bag's depth CameraInfo topic.
+        odometry_topic: a bag's ``nav_msgs/Odometry`` topic, or ``"/tf"``.
+        odometry_frame: the fixed frame of a bag's ``/tf`` odometry.
+        label_topic: a bag's label-image topic (instead of ``labels_dir``).
+        gt_topic: a bag's ground-truth topic (``nav_msgs/Odometry``,
+            ``geometry_msgs/PoseStamped``).
         gt: a bag's ground truth as a pose file (TUM lines, interpolated to the frames).
 
     Returns:

@@ -64,7 +64,8 @@ class CameraRecording(NamedTuple):
 
     Attributes:
         sequence: the query, on the working camera.
-        format: the layout read (one of :data:`CAMERA_FORMATS`).
+        format: the layout read (one of :data:`CAMERA_FORMATS`, or ``"rosbag"``: a ROS bag,
+            :mod:`jaxloc.io.rosbag_camera`).
         frame_ids: the T frame numbers, in order.
         timestamps: (T,) float64 seconds (``.sens``), or None.
         poses_gt: (T, 4) float64 ground truth (x, y, z, yaw), or None.

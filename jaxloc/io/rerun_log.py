@@ -313,7 +313,9 @@ def write_rerun(
     Args:
         path: the ``.rrd`` file to create or replace.
         scene: the map, a :class:`~jaxloc.SceneGraph`.
-        result: the :class:`~jaxloc.sg2loc.SG2LocResult` of :func:`jaxloc.sg2loc.localize`.
+        result: the :class:`~jaxloc.sg2loc.SG2LocResult` of :func:`jaxloc.sg2loc.localize`,
+            or the stacked :class:`~jaxloc.sg2loc.online.Estimate` of
+            :func:`jaxloc.sg2loc.online.filter_sequence` (its ``pose``; no particles).
         sequence: the query (:class:`~jaxloc.sg2loc.FrameSequence`) or the
             :class:`~jaxloc.io.CameraRecording` it came from (then its ground truth and
             timestamps are used unless given): its frames are logged, with the camera at the
@@ -333,10 +335,11 @@ def write_rerun(
         poses_gt = sequence.poses_gt if poses_gt is None else poses_gt
         timestamps = sequence.timestamps if timestamps is None else timestamps
         sequence = sequence.sequence
-    poses = np.asarray(result.poses, np.float64)
+    poses = np.asarray(result.poses if hasattr(result, "poses") else result.pose, np.float64)
     with rrd_recording(path, application_id) as rec:
         log_scene_graph(rec, scene)
-        log_particles(rec, result, timestamps=timestamps, max_particles=max_particles)
+        if hasattr(result, "particles"):
+            log_particles(rec, result, timestamps=timestamps, max_particles=max_particles)
         log_trajectory(rec, poses, poses_gt, np.asarray(result.localized), timestamps=timestamps)
         if sequence is not None:
             T_world_cam = camera_pose_matrices(poses, np.asarray(sequence.tilt))

@@ -130,20 +130,33 @@ def read_bag_camera_sequence(
 
     Args:
         path: a ``.bag``, ``.mcap`` or ``.db3`` file, or a ROS 2 bag folder.
-        width, height: the working size, px (default the images'; one alone keeps the aspect).
-        image_topic, depth_topic, camera_info_topic, depth_info_topic: the topics (default: the
-            only one of each kind; no depth without a depth topic).
-        odometry_topic: a ``nav_msgs/Odometry`` topic or ``"/tf"``; odometry_frame: the fixed
-            frame of the ``/tf`` odometry; odometry: or a pose file of camera-to-odometry poses.
-        gt_topic: a ``nav_msgs/Odometry`` or ``geometry_msgs/PoseStamped`` ground-truth topic;
-            gt: or a pose file of camera-to-world poses.
-        label_topic: label images (class ids) made into patch embeddings with ``classes`` (the
-            map's class embeddings) and ``label_map`` (raw id -> class id), ``patch_shape``
-            (rows, cols) patches; embeddings_dir: or the ``<stamp_ns>.npy`` files;
-            embedding_dim: the map's embedding dimension, checked against those files.
+        width: the working width, px (default the images'; given alone, the aspect is kept).
+        height: the working height, px (likewise).
+        image_topic: the colour topic (default: the only one).
+        depth_topic: the depth topic (default: the only one; none: no depth).
+        camera_info_topic: the colour intrinsics (default: ``camera_info`` beside the image
+            topic, else the only CameraInfo topic).
+        depth_info_topic: the depth intrinsics (default: ``camera_info`` beside the depth topic;
+            none: the colour ones, for depth of the colour images' size).
+        odometry_topic: a ``nav_msgs/Odometry`` topic or ``"/tf"`` (default: the only Odometry
+            topic, else ``/tf`` where it moves the camera, else none).
+        odometry_frame: the fixed frame of the ``/tf`` odometry (default ``odom``, else the
+            root of the camera's tree).
+        odometry: or a pose file of camera-to-odometry poses (TUM: interpolated to the frames).
+        gt_topic: a ``nav_msgs/Odometry`` or ``geometry_msgs/PoseStamped`` ground-truth topic.
+        gt: or a pose file of camera-to-world poses.
+        label_topic: label images (class ids), made into patch embeddings.
+        embeddings_dir: or the folder of ``<stamp_ns>.npy`` patch embeddings (default
+            ``embeddings/`` beside a bag file, inside a bag folder).
+        embedding_dim: the map's embedding dimension, checked against those files.
+        classes: the map's class embeddings (needed with ``label_topic``).
+        label_map: raw label id -> class id for the label images.
+        patch_shape: (rows, cols) of the patch grid made from label images.
         transform: optional (4, 4) rigid transform applied to the ground truth.
-        step, max_frames: every ``step``-th frame, at most ``max_frames`` of them.
-        use_depth, use_rgb: read the depth / colour images into the query.
+        step: every ``step``-th frame.
+        max_frames: at most this many frames.
+        use_depth: read the depth images into the query.
+        use_rgb: read the colour images into the query.
         sync_tolerance: how far (s) a depth or label image's stamp may be from its frame's.
 
     Returns:
@@ -164,56 +177,26 @@ def read_bag_camera_sequence(
     check_working_size(width, height)
     if min(patch_shape) < 1:
         raise ValueError(f"patch_shape must be >= 1, got {list(patch_shape)}")
-    if odometry is not None and odometry_topic is not None:
-        raise ValueError("give odometry (a pose file) or odometry_topic, not both")
-    if gt is not None and gt_topic is not None:
-        raise ValueError("give gt (a pose file) or gt_topic, not both")
-    if label_topic is not None and embeddings_dir is not None:
-        raise ValueError("give label_topic or embeddings_dir, not both")
+    pairs = (
+        ("odometry", odometry, "odometry_topic", odometry_topic),
+        ("gt", gt, "gt_topic", gt_topic),
+        ("embeddings_dir", embeddings_dir, "label_topic", label_topic),
+    )
+    for file, file_value, topic, topic_value in pairs:
+        if file_value is not None and topic_value is not None:
+            raise ValueError(f"give {file} or {topic}, not both")
     bag = str(path)
     with open_bag(path) as reader:
         topics = reader.topics
-        images = sorted(t for t, i in topics.items() if i.msgtype in (IMAGE, COMPRESSED))
-        encodings = {t: image_encoding(reader, bag, t) for t in images}
-        depth_like = [t for t in images if encodings[t] in DEPTH_ENCODINGS]
-        depth_like += [t for t in images if encodings[t] == "compressedDepth"]
-        others = {depth_topic, label_topic}
-        colors = [t for t in images if t not in others and t not in depth_like]
-        if image_topic in images:
-            colors = sorted({*colors, image_topic})
-        image_topic = pick_topic(topics, bag, colors, image_topic, "colour image", "image_topic")
-        if image_topic is None:
-            listed = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(topics.items()))
-            raise ValueError(
-                f"{bag}: no sensor_msgs/Image or CompressedImage colour topic (topics: "
-                f"{listed or 'none'})"
-            )
-        depths = sorted({*depth_like, depth_topic} & set(images) - {image_topic, label_topic})
-        depth_topic = pick_topic(topics, bag, depths, depth_topic, "depth image", "depth_topic")
-        if label_topic is not None:
-            pick_topic(topics, bag, [t for t in images if t != image_topic], label_topic, "image",
-                  "label_topic")  # fmt: skip
+        image_topic, depth_topic = _image_topics(reader, bag, image_topic, depth_topic,
+                                                 label_topic, use_depth)  # fmt: skip
         color = BagTopic(reader, bag, image_topic)
         numbers = tuple(range(len(color.stamps)))
         selected = numbers[::step][:max_frames]
         stamps = color.stamps[list(selected)]
         first = color_image(color.first(), color.msgtype, f"{bag}: {image_topic} (message 0)")
         native = first.size
-        info = _info_topic(topics, bag, image_topic, camera_info_topic, "camera_info_topic")
-        infos = [t for t, i in topics.items() if i.msgtype == CAMERA_INFO]
-        if info is None and camera_info_topic is None and len(infos) == 1:
-            info = infos[0]
-        if info is None:
-            raise ValueError(
-                f"{bag}: no sensor_msgs/CameraInfo topic beside {image_topic} (CameraInfo topics:"
-                f" {', '.join(sorted(infos)) or 'none'}; name one with camera_info_topic=)"
-            )
-        K_color, info_size = camera_intrinsics(first_message(reader, bag, info), info)
-        if info_size not in (native, (0, 0)):
-            raise ValueError(
-                f"{bag}: {info} is for {info_size[0]}x{info_size[1]} images, {image_topic} has "
-                f"{native[0]}x{native[1]}"
-            )
+        K_color = _color_intrinsics(reader, bag, image_topic, camera_info_topic, native)
         depth, depth_of, K_depth, depth_size = None, {}, None, None
         if depth_topic is not None and use_depth:
             depth = BagTopic(reader, bag, depth_topic)
@@ -229,19 +212,18 @@ def read_bag_camera_sequence(
                     f"{native[0]}x{native[1]}, and no CameraInfo is beside {depth_topic} (name "
                     "one with depth_info_topic=)"
                 )
-        camera_frame = first_frame_id(color)
-        track = TfTree(topics, bag, lambda t: (m for _, m in topic_messages(reader, bag, t)))
-        motion = None
+        camera_frame = str(color.first().header.frame_id).lstrip("/")
+        tree = TfTree(topics, bag, lambda t: (m for _, m in topic_messages(reader, bag, t)))
         if odometry is not None:
             motion = pose_file_track(odometry, numbers, color.stamps, selected)
         else:
-            motion = track_poses(track, topics, camera_frame, odometry_topic, odometry_frame,
+            motion = track_poses(tree, topics, camera_frame, odometry_topic, odometry_frame,
                                  stamps, selected, image_topic)  # fmt: skip
         truth = None
         if gt is not None:
             truth = pose_file_track(gt, numbers, color.stamps, selected)
         elif gt_topic is not None:
-            truth = frame_poses(track, topics, gt_topic, camera_frame, stamps, selected,
+            truth = frame_poses(tree, topics, gt_topic, camera_frame, stamps, selected,
                                 image_topic, "gt_topic")  # fmt: skip
         if motion is None and truth is None:
             raise ValueError(
@@ -273,9 +255,7 @@ def read_bag_camera_sequence(
             BAG_FORMAT, Path(path), K_color, native, K_depth, depth_size, numbers,
             truth is not None, load,
         )  # fmt: skip
-        odometry_poses = None
-        if motion is not None:
-            odometry_poses = Odometry(Path(path), motion, None, None, 0)
+        odometry_poses = None if motion is None else Odometry(Path(path), motion, None, None, 0)
         return sequence_from_frames(
             source,
             selected,
@@ -288,9 +268,52 @@ def read_bag_camera_sequence(
         )
 
 
-def first_frame_id(topic: BagTopic) -> str:
-    """The ``header.frame_id`` of a topic's first message, without a leading ``/``."""
-    return str(topic.first().header.frame_id).lstrip("/")
+def _image_topics(reader, bag: str, image_topic, depth_topic, label_topic, use_depth) -> tuple:
+    """(colour topic, depth topic or None): named, else the only one of each kind (an image
+    topic is depth when its first message is ``16UC1`` / ``32FC1`` or compressed depth; no
+    depth topic is picked without ``use_depth``)."""
+    topics = reader.topics
+    images = sorted(t for t, i in topics.items() if i.msgtype in (IMAGE, COMPRESSED))
+    encodings = {t: image_encoding(reader, bag, t) for t in images}
+    depth_like = {t for t in images if encodings[t] in (*DEPTH_ENCODINGS, "compressedDepth")}
+    colors = sorted(
+        {t for t in images if t not in {depth_topic, label_topic} | depth_like}
+        | ({image_topic} & set(images))
+    )
+    image_topic = pick_topic(topics, bag, colors, image_topic, "colour image", "image_topic")
+    if image_topic is None:
+        listed = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(topics.items()))
+        raise ValueError(
+            f"{bag}: no sensor_msgs/Image or CompressedImage colour topic (topics: "
+            f"{listed or 'none'})"
+        )
+    depths = sorted(({*depth_like, depth_topic} & set(images)) - {image_topic, label_topic})
+    if use_depth:
+        depth_topic = pick_topic(topics, bag, depths, depth_topic, "depth image", "depth_topic")
+    if label_topic is not None:
+        others = [t for t in images if t != image_topic]
+        pick_topic(topics, bag, others, label_topic, "image", "label_topic")
+    return image_topic, depth_topic
+
+
+def _color_intrinsics(reader, bag: str, image_topic: str, named, size) -> np.ndarray:
+    """(4, 4) intrinsics of the colour images of ``size`` (W, H) from their CameraInfo."""
+    info = _info_topic(reader.topics, bag, image_topic, named, "camera_info_topic")
+    infos = sorted(t for t, i in reader.topics.items() if i.msgtype == CAMERA_INFO)
+    if info is None and named is None and len(infos) == 1:
+        info = infos[0]
+    if info is None:
+        raise ValueError(
+            f"{bag}: no sensor_msgs/CameraInfo topic beside {image_topic} (CameraInfo topics: "
+            f"{', '.join(infos) or 'none'}; name one with camera_info_topic=)"
+        )
+    K, info_size = camera_intrinsics(first_message(reader, bag, info), f"{bag}: {info}")
+    if info_size not in (size, (0, 0)):
+        raise ValueError(
+            f"{bag}: {info} is for {info_size[0]}x{info_size[1]} images, {image_topic} has "
+            f"{size[0]}x{size[1]}"
+        )
+    return K
 
 
 def _embeddings(
