@@ -158,8 +158,20 @@ def test_an_m2loc_drive_reads_back_as_logged(tmp_path):
         np.asarray(scans[1]), steps[2].instances.points + [10.0, 0, 0], atol=1e-5
     )
     labels = _rows(found["/world/trajectory/estimate/current"], "Arrows3D:labels")
-    assert [label[0] for label in labels] == ["relocalized", "lost", "tracked"]
+    assert [label[0] for label in labels if label] == ["relocalized", "tracked"]  # lost: cleared
     assert "/world/trajectory/gt" not in found
+    assert not _rows(found.get("/world/trajectory/estimate", []), "LineStrips3D:strips")
+    gt = poses + [[0, 0, 0, 0.5], [0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]]
+    path = write_drive_rerun(tmp_path / "gt.rrd", instance_map, drive, gt,
+                             has_gt=[True, True, False])  # fmt: skip
+    found = _read(path)
+    strip = np.asarray(_rows(found["/world/trajectory/gt"], "LineStrips3D:strips")[0][0])
+    np.testing.assert_allclose(strip, gt[:2, :3, 3], atol=1e-6)
+    scans = _rows(found["/world/scan/instances"], "Points3D:positions")  # the lost one: by gt
+    np.testing.assert_allclose(np.asarray(scans[1]), steps[1].instances.points + gt[1, :3, 3],
+                               atol=1e-5)  # fmt: skip
+    errors = _rows(found["/plots/position_error_m"], "Scalars:scalars")
+    np.testing.assert_allclose(np.ravel(errors), [0.5], atol=1e-6)
 
 
 def test_without_rerun_the_writer_says_how_to_install_it(sg2loc_run, tmp_path, monkeypatch):

@@ -218,6 +218,8 @@ def log_trajectory(
     entity: str = "world/trajectory",
     timestamps=None,
     labels=None,
+    has_pose=None,
+    has_gt=None,
 ) -> None:
     """Log an estimated trajectory, the ground truth and the per-frame verdict.
 
@@ -231,36 +233,49 @@ def log_trajectory(
         entity: the trajectory's entity path.
         timestamps: (T,) seconds for the ``time`` timeline, or None.
         labels: (T,) text shown on each frame's arrow (e.g. an M2Loc status), or None.
+        has_pose: (T,) bool, the frames ``poses`` holds an estimate for (default all; an M2Loc
+            scan that did not localize has none): the path skips the others.
+        has_gt: (T,) bool, the frames ``poses_gt`` holds a pose for (default all).
     """
     rr = require_rerun()
     poses = np.asarray(poses, np.float64)
-    verdict = np.ones(len(poses), bool) if verdict is None else np.asarray(verdict, bool)
+    every = np.ones(len(poses), bool)
+    verdict = every if verdict is None else np.asarray(verdict, bool)
+    has_pose = every if has_pose is None else np.asarray(has_pose, bool)
     origins, vectors = _arrows(poses, 0.5)
     colors = _verdict_colors(verdict)
-    if len(poses) > 1:
-        segments = np.stack([origins[:-1], origins[1:]], 1)
-        rec.log(f"{entity}/estimate", rr.LineStrips3D(segments, colors=colors[1:]), static=True)
+    joined = np.flatnonzero(has_pose[:-1] & has_pose[1:])
+    if joined.size:
+        segments = np.stack([origins[joined], origins[joined + 1]], 1)
+        rec.log(
+            f"{entity}/estimate", rr.LineStrips3D(segments, colors=colors[joined + 1]), static=True
+        )
     gt_origins = gt_vectors = None
     if poses_gt is not None:
+        has_gt = every if has_gt is None else np.asarray(has_gt, bool)
         gt_origins, gt_vectors = _arrows(np.asarray(poses_gt, np.float64), 0.5)
-        rec.log(f"{entity}/gt", rr.LineStrips3D([gt_origins], colors=[GT_COLOR]), static=True)
+        strip = gt_origins[has_gt]
+        rec.log(f"{entity}/gt", rr.LineStrips3D([strip], colors=[GT_COLOR]), static=True)
     for t in range(len(poses)):
         _set_frame(rec, t, timestamps)
-        text = None if labels is None else [str(labels[t])]
-        rec.log(
-            f"{entity}/estimate/current",
-            rr.Arrows3D(origins=origins[t : t + 1], vectors=vectors[t : t + 1],
-                        colors=colors[t : t + 1], labels=text),
-        )  # fmt: skip
         rec.log("plots/localized", rr.Scalars([float(verdict[t])]))
-        if gt_origins is None:
+        if has_pose[t]:
+            text = None if labels is None else [str(labels[t])]
+            rec.log(
+                f"{entity}/estimate/current",
+                rr.Arrows3D(origins=origins[t : t + 1], vectors=vectors[t : t + 1],
+                            colors=colors[t : t + 1], labels=text),
+            )  # fmt: skip
+        else:
+            rec.log(f"{entity}/estimate/current", rr.Clear(recursive=False))
+        if gt_origins is None or not has_gt[t]:
             continue
         rec.log(
             f"{entity}/gt/current",
             rr.Arrows3D(origins=gt_origins[t : t + 1], vectors=gt_vectors[t : t + 1],
                         colors=[GT_COLOR]),
         )  # fmt: skip
-        if verdict[t]:
+        if verdict[t] and has_pose[t]:
             error = np.linalg.norm(origins[t] - gt_origins[t])
             turn = np.arctan2(np.cross(vectors[t], gt_vectors[t])[2], vectors[t] @ gt_vectors[t])
             rec.log("plots/position_error_m", rr.Scalars([float(error)]))
@@ -353,6 +368,7 @@ def write_drive_rerun(
     drive,
     poses_gt=None,
     *,
+    has_gt=None,
     timestamps=None,
     application_id: str = "jaxloc",
 ) -> Path:
@@ -365,7 +381,10 @@ def write_drive_rerun(
         drive: the :class:`~jaxloc.m2loc.DriveResult` of :func:`jaxloc.m2loc.localize_drive`:
             its (N, 4, 4) ``T_map_scan`` poses where ``valid``, each scan's status (the arrow's
             label) and instances (placed by the pose).
-        poses_gt: (N, 4, 4) ground-truth ``T_map_scan``, or None.
+        poses_gt: (N, 4, 4) ground-truth ``T_map_scan``, or None (a
+            :class:`~jaxloc.io.LidarRecording`'s ``poses``).
+        has_gt: (N,) bool, the scans ``poses_gt`` holds a pose for (default all; a recording's
+            ``has_pose``).
         timestamps: (N,) seconds of the scans for a ``time`` timeline, or None.
         application_id: the recording's application id in the viewer.
 
@@ -384,9 +403,11 @@ def write_drive_rerun(
     names = [TrackStatus(int(s)).name.lower() for s in np.asarray(drive.status)]
     with rrd_recording(path, application_id) as rec:
         log_instance_map(rec, instance_map)
-        log_trajectory(rec, poses, gt, valid, timestamps=timestamps, labels=names)
+        has_gt = np.ones(len(poses), bool) if has_gt is None else np.asarray(has_gt, bool)
+        log_trajectory(rec, poses, gt, valid, timestamps=timestamps, labels=names,
+                       has_pose=valid, has_gt=has_gt)  # fmt: skip
         for t, step in enumerate(drive.steps):
-            pose = poses[t] if valid[t] else (None if gt is None else gt[t])
+            pose = poses[t] if valid[t] else (gt[t] if gt is not None and has_gt[t] else None)
             if pose is None or not len(step.instances.points):
                 continue
             _set_frame(rec, t, timestamps)
