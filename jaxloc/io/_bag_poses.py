@@ -186,7 +186,8 @@ def frame_poses(
     tree: TfTree, topics, topic, camera_frame, at_ns, frames, image_topic, option
 ) -> dict[int, np.ndarray]:
     """frame number -> (4, 4) camera pose from an Odometry topic (its child frame carried to the
-    camera through the tree) or a PoseStamped topic (the camera's own pose)."""
+    camera through the tree) or a PoseStamped topic (the camera's own pose). Images without a
+    ``frame_id``, or an Odometry without a ``child_frame_id``, take the pose as the camera's."""
     kinds = sorted(t for t, i in topics.items() if i.msgtype in (ODOMETRY, POSE_STAMPED))
     if topic not in kinds:
         kind = f"a {topics[topic].msgtype}" if topic in topics else "not in the bag"
