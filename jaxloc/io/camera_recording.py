@@ -1,7 +1,8 @@
 """A camera recording opened for SG2Loc in one call, and its estimated poses written for evo.
 
-:func:`open_camera_recording` is :func:`~jaxloc.io.camera_sequence.read_camera_sequence`
-with the recording's side files named as files: the map the recording is localized in (its
+:func:`open_camera_recording` is :func:`~jaxloc.io.camera_sequence.read_camera_sequence` (or,
+for a ROS bag, :func:`~jaxloc.io.rosbag_camera.read_bag_camera_sequence`) with the recording's
+side files named as files: the map the recording is localized in (its
 object embeddings' dimension, and its class embeddings for label images), a label table mapping
 raw label ids to classes, and the transform of a 3RScan rescan into its reference scan's frame
 (``3RScan.json``, or a 4x4 matrix file). It returns a :class:`~jaxloc.io.CameraRecording`: the query
@@ -24,6 +25,7 @@ from jaxloc.io._map_file import read_map_file
 from jaxloc.io.camera_frames import check_rigid, read_matrix
 from jaxloc.io.camera_sequence import CameraRecording, read_camera_sequence
 from jaxloc.io.poses import write_kitti, write_tum
+from jaxloc.io.rosbag_camera import BAG_FORMAT, is_bag, read_bag_camera_sequence
 from jaxloc.io.rscan_sequence import read_rescan_transform, scan_id_of
 from jaxloc.io.scannet import read_label_table
 from jaxloc.io.scene_map import FORMAT_NAME, FORMAT_VERSION, load_class_embeddings
@@ -59,12 +61,23 @@ def open_camera_recording(
     max_frames: int | None = None,
     use_depth: bool = True,
     use_rgb: bool = True,
+    image_topic: str | None = None,
+    depth_topic: str | None = None,
+    camera_info_topic: str | None = None,
+    depth_info_topic: str | None = None,
+    odometry_topic: str | None = None,
+    odometry_frame: str | None = None,
+    label_topic: str | None = None,
+    gt_topic: str | None = None,
+    gt: str | os.PathLike | None = None,
 ) -> CameraRecording:
     """Open a camera recording as a query for the map ``map_file`` (see the module docstring).
 
     Args:
-        path: a ScanNet export folder, a ``.sens`` file or a 3RScan scan (or its ``sequence/``).
-        format: "scannet-export", "sens" or "3rscan" (default: detected).
+        path: a ScanNet export folder, a ``.sens`` file, a 3RScan scan (or its ``sequence/``),
+            or a ROS bag (a ``.bag``, ``.mcap`` or ``.db3`` file, or a ROS 2 bag folder;
+            :mod:`jaxloc.io.rosbag_camera`).
+        format: "scannet-export", "sens", "3rscan" or "rosbag" (default: detected).
         map_file: the scene-graph map (:func:`~jaxloc.io.save_scene`): embedding files must have
             its dimension, and label images become embeddings with its class embeddings.
         width: the working width, px (default the images'; given alone, the aspect is kept).
@@ -83,6 +96,18 @@ def open_camera_recording(
         step: every ``step``-th frame; max_frames: at most this many frames.
         use_depth: read the depth images into the query.
         use_rgb: read the colour images into the query.
+        image_topic: a bag's colour topic (default: the only one; the topics and their
+            defaults: :func:`~jaxloc.io.rosbag_camera.read_bag_camera_sequence`; a bag's
+            embedding files in ``embeddings_dir`` are named by the frame's stamp in ns).
+        depth_topic: a bag's depth topic.
+        camera_info_topic: a bag's colour CameraInfo topic.
+        depth_info_topic: a bag's depth CameraInfo topic.
+        odometry_topic: a bag's ``nav_msgs/Odometry`` topic, or ``"/tf"``.
+        odometry_frame: the fixed frame of a bag's ``/tf`` odometry.
+        label_topic: a bag's label-image topic (instead of ``labels_dir``).
+        gt_topic: a bag's ground-truth topic (``nav_msgs/Odometry``,
+            ``geometry_msgs/PoseStamped``).
+        gt: a bag's ground truth as a pose file (TUM lines, interpolated to the frames).
 
     Returns:
         A :class:`~jaxloc.io.CameraRecording`.
@@ -91,8 +116,25 @@ def open_camera_recording(
         FileNotFoundError, ValueError: naming the file, as
             :func:`~jaxloc.io.camera_sequence.read_camera_sequence`; both ``rescan_json`` and
             ``transform``; a ``patch_shape`` below 1; label images without a ``map_file``
-            holding class embeddings.
+            holding class embeddings; bag options for a folder, folder options for a bag.
     """
+    bag_options = {
+        "image_topic": image_topic,
+        "depth_topic": depth_topic,
+        "camera_info_topic": camera_info_topic,
+        "depth_info_topic": depth_info_topic,
+        "odometry_topic": odometry_topic,
+        "odometry_frame": odometry_frame,
+        "label_topic": label_topic,
+        "gt_topic": gt_topic,
+        "gt": gt,
+    }
+    bag = format == BAG_FORMAT or (format is None and is_bag(path))
+    given = [name for name, value in bag_options.items() if value is not None]
+    if given and not bag:
+        raise ValueError(f"{path}: {', '.join(given)} apply to ROS bags only")
+    if bag and labels_dir is not None:
+        raise ValueError(f"{path}: a bag's label images come from label_topic, not labels_dir")
     if rescan_json is not None and transform is not None:
         raise ValueError("give rescan_json or transform, not both")
     if min(patch_shape) < 1:
@@ -108,7 +150,26 @@ def open_camera_recording(
     dim = classes = None
     if map_file is not None:
         dim = _embedding_dim(Path(map_file))
-        classes = load_class_embeddings(map_file) if labels_dir is not None else None
+        with_labels = labels_dir is not None or label_topic is not None
+        classes = load_class_embeddings(map_file) if with_labels else None
+    if bag:
+        return read_bag_camera_sequence(
+            path,
+            width,
+            height,
+            **bag_options,
+            odometry=odometry,
+            embeddings_dir=embeddings_dir,
+            embedding_dim=dim,
+            classes=classes,
+            label_map=label_map,
+            patch_shape=tuple(patch_shape),
+            transform=transform,
+            step=step,
+            max_frames=max_frames,
+            use_depth=use_depth,
+            use_rgb=use_rgb,
+        )
     return read_camera_sequence(
         path,
         format,

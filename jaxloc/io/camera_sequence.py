@@ -28,7 +28,7 @@ cameras sharing their centre and axes (as the exporters of both datasets assume)
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -64,7 +64,8 @@ class CameraRecording(NamedTuple):
 
     Attributes:
         sequence: the query, on the working camera.
-        format: the layout read (one of :data:`CAMERA_FORMATS`).
+        format: the layout read (one of :data:`CAMERA_FORMATS`, or ``"rosbag"``: a ROS bag,
+            :mod:`jaxloc.io.rosbag_camera`).
         frame_ids: the T frame numbers, in order.
         timestamps: (T,) float64 seconds (``.sens``), or None.
         poses_gt: (T, 4) float64 ground truth (x, y, z, yaw), or None.
@@ -216,10 +217,57 @@ def _read_embedding(path: Path, dim: int | None, shape) -> np.ndarray:
     return array
 
 
+def embedding_files(
+    folder: Path, dim: int | None, name_of: Callable[[int], str] = lambda n: f"{n}.npy"
+) -> Callable[[int], np.ndarray]:
+    """``embedding_of(number)``: the (rows, cols, d) patch embeddings of a frame from the file
+    ``folder / name_of(number)``, each checked to have ``dim`` dims and the first one's shape."""
+    first: list[tuple[int, ...]] = []
+
+    def embedding_of(number: int) -> np.ndarray:
+        array = _read_embedding(folder / name_of(number), dim, first[0] if first else None)
+        first[:] = first or [array.shape]
+        return array
+
+    return embedding_of
+
+
 def _label_files(folder: Path) -> dict[int, Path]:
     if not folder.is_dir():
         raise FileNotFoundError(2, "No such folder (the label images)", str(folder))
     return {int(p.stem): p for p in folder.iterdir() if p.suffix == ".png" and p.stem.isdigit()}
+
+
+def check_label_classes(classes: ClassEmbeddings | None) -> None:
+    """ValueError unless the map's class embeddings are given (label images need them)."""
+    if classes is None:
+        raise ValueError(
+            "label images need the map's class embeddings (maps built by build-scene-graph "
+            "store them; a map with per-object embeddings has none)"
+        )
+
+
+def check_working_size(width: int | None, height: int | None) -> None:
+    """ValueError naming ``width`` or ``height`` unless each is None or an integer >= 1."""
+    for name, size in (("width", width), ("height", height)):
+        if size is not None and (not isinstance(size, int | np.integer) or size < 1):
+            raise ValueError(f"{name} must be an integer >= 1 (pixels), got {size!r}")
+
+
+def working_camera(
+    K_color: np.ndarray, native: tuple[int, int], width: int | None, height: int | None
+) -> Camera:
+    """The camera of images of size ``native = (W0, H0)`` with intrinsics ``K_color`` (4, 4)
+    resized to ``width x height`` px (default the native size; one of the two alone keeps the
+    aspect): :func:`~jaxloc.io.camera_frames.scale_intrinsics`. ValueError for a size below 1."""
+    check_working_size(width, height)
+    if width is None and height is None:
+        width, height = native
+    elif height is None:
+        height = max(1, round(width * native[1] / native[0]))
+    elif width is None:
+        width = max(1, round(height * native[0] / native[1]))
+    return scale_intrinsics(K_color, native, (width, height))
 
 
 def read_camera_sequence(
@@ -272,23 +320,12 @@ def read_camera_sequence(
     """
     if step < 1 or (max_frames is not None and max_frames < 1):
         raise ValueError("step and max_frames must be >= 1")
-    for name, size in (("width", width), ("height", height)):
-        if size is not None and (not isinstance(size, int | np.integer) or size < 1):
-            raise ValueError(f"{name} must be an integer >= 1 (pixels), got {size!r}")
+    check_working_size(width, height)
     if transform is not None:
         transform = check_rigid(np.asarray(transform, np.float64).reshape(4, 4), "transform")
     source = open_frame_source(path, format)
     folder = _recording_folder(source)
-    numbers = source.numbers[::step][:max_frames]
-    native = source.color_size
-    if width is None and height is None:
-        width, height = native
-    elif height is None:
-        height = max(1, round(width * native[1] / native[0]))
-    elif width is None:
-        width = max(1, round(height * native[0] / native[1]))
-    camera = scale_intrinsics(source.K_color, native, (width, height))
-    K_depth = source.K_color if source.K_depth is None else source.K_depth
+    camera = working_camera(source.K_color, source.color_size, width, height)
     odometry_path = Path(odometry) if odometry is not None else folder / "odometry.txt"
     odometry_poses = None
     if odometry_path.is_file():
@@ -298,20 +335,58 @@ def read_camera_sequence(
     if not source.has_poses and odometry_poses is None:
         raise FileNotFoundError(2, "No poses: need pose/ or an odometry file", str(source.path))
     emb_dir = Path(embeddings_dir) if embeddings_dir is not None else folder / "embeddings"
-    use_labels = not emb_dir.is_dir()
-    if use_labels and embeddings_dir is not None:
+    if emb_dir.is_dir():
+        embedding_of = embedding_files(emb_dir, embedding_dim)
+    elif embeddings_dir is not None:
         raise FileNotFoundError(2, "No such folder (the patch embeddings)", str(emb_dir))
-    if use_labels:
-        if labels_dir is None:
-            raise FileNotFoundError(
-                2, "No patch embeddings: need embeddings/ or label images", str(emb_dir)
-            )
-        if classes is None:
-            raise ValueError(
-                "label images need the map's class embeddings (maps built by build-scene-graph "
-                "store them; a map with per-object embeddings has none)"
-            )
+    elif labels_dir is None:
+        raise FileNotFoundError(
+            2, "No patch embeddings: need embeddings/ or label images", str(emb_dir)
+        )
+    else:
+        check_label_classes(classes)
         labels = _label_files(Path(labels_dir))
+
+        def embedding_of(number: int) -> np.ndarray:
+            if number not in labels:
+                raise FileNotFoundError(
+                    2, "No label image", str(Path(labels_dir) / f"{number}.png")
+                )
+            image = read_label_image(labels[number])
+            return patch_embeddings_from_labels(image, *patch_shape, classes, label_map)[0]
+
+    return sequence_from_frames(
+        source,
+        source.numbers[::step][:max_frames],
+        camera,
+        embedding_of,
+        odometry=odometry_poses,
+        transform=transform,
+        use_depth=use_depth,
+        use_rgb=use_rgb,
+    )
+
+
+def sequence_from_frames(
+    source: FrameSource,
+    numbers: Sequence[int],
+    camera: Camera,
+    embedding_of: Callable[[int], np.ndarray],
+    *,
+    odometry: Odometry | None = None,
+    transform: np.ndarray | None = None,
+    use_depth: bool = True,
+    use_rgb: bool = True,
+) -> CameraRecording:
+    """The query of the frames ``numbers`` of ``source``, read one at a time, on ``camera`` (the
+    working camera, :func:`working_camera`): each frame's colour resized to it, its depth sampled
+    onto its pixels, its patch embeddings ``embedding_of(number)`` ((rows, cols, d)); the
+    ego-motion and tilt from ``odometry`` where given, else from the frames' poses, which are the
+    ground truth (``transform`` (4, 4) applied first); frames without a pose are skipped where
+    the source has poses. Raises ValueError naming the source when no frame has a valid pose."""
+    if transform is not None:
+        transform = check_rigid(np.asarray(transform, np.float64).reshape(4, 4), "transform")
+    K_depth = source.K_color if source.K_depth is None else source.K_depth
     with_depth = use_depth and source.depth_size is not None
     kept, stamps, gt, motion_poses, skipped = [], [], [], [], []
     embeddings, depths, rgbs = [], [], []
@@ -324,32 +399,22 @@ def read_camera_sequence(
                 continue
             pose = pose if transform is None else transform @ pose
             gt.append(pose)
-        if odometry_poses is not None:
-            by_time = odometry_poses.by_number is None and frame.timestamp is not None
+        if odometry is not None:
+            by_time = odometry.by_number is None and frame.timestamp is not None
             if by_time and stamps and frame.timestamp <= stamps[-1]:
                 raise ValueError(
                     f"{source.path} (frame {number}): timestamp {frame.timestamp} s is not after "
                     f"frame {kept[-1]}'s ({stamps[-1]} s); frames are matched to the odometry "
-                    f"{odometry_poses.path} by time, so their times must increase"
+                    f"{odometry.path} by time, so their times must increase"
                 )
-            pose = odometry_poses.pose(number, frame.timestamp)
+            pose = odometry.pose(number, frame.timestamp)
         motion_poses.append(pose)
         kept.append(number)
         stamps.append(frame.timestamp)
-        if use_labels:
-            if number not in labels:
-                raise FileNotFoundError(
-                    2, "No label image", str(Path(labels_dir) / f"{number}.png")
-                )
-            embedding = patch_embeddings_from_labels(
-                read_label_image(labels[number]), *patch_shape, classes, label_map
-            )[0]
-        else:
-            shape = embeddings[0].shape if embeddings else None
-            embedding = _read_embedding(emb_dir / f"{number}.npy", embedding_dim, shape)
-        embeddings.append(embedding)
+        embeddings.append(embedding_of(number))
         if use_rgb:
-            resized = frame.color.convert("RGB").resize((width, height), Image.Resampling.BILINEAR)
+            size = (camera.width, camera.height)
+            resized = frame.color.convert("RGB").resize(size, Image.Resampling.BILINEAR)
             rgbs.append(np.asarray(resized, np.float64) / 255.0)
         if frame.depth is not None:
             depths.append(sample_depth(frame.depth, K_depth, camera))
@@ -375,6 +440,7 @@ def read_camera_sequence(
         poses_gt = np.stack([p for p, _ in gt_pose_tilt])
         tilt_gt = np.stack([t for _, t in gt_pose_tilt])
     timestamps = None if any(s is None for s in stamps) else np.asarray(stamps, np.float64)
+    native = source.color_size
     return CameraRecording(
         sequence,
         source.format,
