@@ -38,7 +38,7 @@ def _one_line(call, *parts: str) -> None:
 
 def test_a_float64_scan_with_a_uint64_label_file_is_refused(tmp_path):
     """The counts agree (each float64 is two float32, each uint64 two uint32 words), the
-    coordinates do not: the low words of the doubles read as float32 reach 1e35 m."""
+    coordinates do not: the words of the doubles read as float32 reach 1e20 m and more."""
     points, raw = _scan()
     np.column_stack([points, np.zeros(len(points))]).astype("<f8").tofile(tmp_path / "a.bin")
     raw.astype("<u8").tofile(tmp_path / "a.label")

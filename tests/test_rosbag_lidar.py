@@ -149,7 +149,10 @@ def test_odometry_from_tf_and_from_another_frame_through_tf_static(scans, tmp_pa
     (exact for constant speed and yaw rate); ground truth from a pose topic, a scan outside it
     without a pose."""
     tf_bag = write_drive(tmp_path / "tf.mcap", "bare-mcap", scans, STAMPS, odometry="tf")
-    np.testing.assert_allclose(open_lidar_recording(tf_bag).odometry, scans.T_map_scan, atol=1e-9)
+    for named in (None, "/tf"):
+        found = open_lidar_recording(tf_bag, odometry_topic=named)
+        assert found.bag.odometry_topic == "/tf"
+        np.testing.assert_allclose(found.odometry, scans.T_map_scan, atol=1e-9)
 
     def motion(t):
         pose = np.eye(4)
@@ -383,8 +386,11 @@ def test_write_lidar_poses_picks_the_format_by_the_path(written, tmp_path):
     assert (tmp_path / "a.mcap").read_bytes()[:5] == b"\x89MCAP"
     write_lidar_poses(tmp_path / "bag", recording, poses, valid, "rosbag2")
     assert (tmp_path / "bag" / "metadata.yaml").is_file()
-    one_line_error(
-        lambda: write_lidar_poses(tmp_path / "b.mcap", recording, poses, valid, "tum"),
-        "b.mcap: format 'tum' and the file name disagree",
-    )
+    write_lidar_poses(tmp_path / "c.mcap", recording, poses, valid, "tum")  # the default
+    assert (tmp_path / "c.mcap").read_bytes() == (tmp_path / "a.mcap").read_bytes()
+    for name, format in (("b.mcap", "kitti"), ("b.tum", "mcap"), ("b.mcap", "rosbag2")):
+        one_line_error(
+            lambda n=name, f=format: write_lidar_poses(tmp_path / n, recording, poses, valid, f),
+            f"{name}: format {format!r} does not fit the name",
+        )
     shutil.rmtree(tmp_path / "bag")

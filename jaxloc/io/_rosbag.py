@@ -78,8 +78,9 @@ def open_bag(path: Path) -> Any:
 
 
 def messages(reader: Any, path: Path, topics: Sequence[str], start=None, stop=None) -> Iterator:
-    """``(msgtype, log_time_ns, raw)`` of the messages of ``topics``, in log-time order, one at a
-    time; a damaged part of the bag raises ``ValueError`` naming the bag and the topics."""
+    """``(topic, msgtype, log_time_ns, raw)`` of the messages of ``topics``, in log-time order,
+    one at a time (one pass over the bag, whatever the number of topics); a damaged part of the
+    bag raises ``ValueError`` naming the bag and the topics."""
     connections = [c for c in reader.connections if c.topic in topics]
     if not connections:
         return
@@ -93,7 +94,7 @@ def messages(reader: Any, path: Path, topics: Sequence[str], start=None, stop=No
             raise ValueError(
                 f"{path}: damaged bag, reading {', '.join(topics)} ({_reason(error)})"
             ) from None
-        yield connection.msgtype, log_time, raw
+        yield connection.topic, connection.msgtype, log_time, raw
 
 
 def deserialize(reader: Any, raw: bytes, msgtype: str, where: str) -> Any:
@@ -208,69 +209,82 @@ def _series(frame, child, stamps, poses, where: str) -> PoseSeries:
     return PoseSeries(frame, child, stamps, poses)
 
 
-def read_pose_topic(reader: Any, path: Path, topic: str) -> PoseSeries:
-    """Every pose of a topic of :data:`POSE_TYPES` (one frame and child frame throughout).
+class PoseCollector:
+    """The poses of one topic of :data:`POSE_TYPES`, message by message (one frame and child
+    frame throughout); :meth:`series` sorts them."""
 
-    Raises:
-        ValueError: naming the bag and topic: no message, a pose that is not finite or not a unit
-            quaternion, frames that change, two poses at one stamp.
-    """
-    where = f"{path}: {topic}"
-    frames, stamps, poses = None, [], []
-    for msgtype, _, raw in messages(reader, path, [topic]):
-        frame, child, stamp, pose = pose_of(
-            deserialize(reader, raw, msgtype, where), msgtype, where
-        )
-        if frames is None:
-            frames = (frame, child)
-        elif frames != (frame, child):
-            raise ValueError(f"{where}: the frames change from {frames} to {(frame, child)}")
-        stamps.append(stamp)
-        poses.append(pose)
-    if frames is None:
-        raise ValueError(f"{where}: no message")
-    return _series(*frames, stamps, poses, where)
+    def __init__(self, path: Path, topic: str) -> None:
+        self.where = f"{path}: {topic}"
+        self.frames: tuple | None = None
+        self.stamps: list[int] = []
+        self.poses: list[np.ndarray] = []
+
+    def add(self, message: Any, msgtype: str) -> None:
+        frame, child, stamp, pose = pose_of(message, msgtype, self.where)
+        if self.frames is None:
+            self.frames = (frame, child)
+        elif self.frames != (frame, child):
+            raise ValueError(
+                f"{self.where}: the frames change from {self.frames} to {(frame, child)}"
+            )
+        self.stamps.append(stamp)
+        self.poses.append(pose)
+
+    def series(self) -> PoseSeries:
+        """The poses as a :class:`PoseSeries`.
+
+        Raises:
+            ValueError: naming the bag and topic: no message, two poses at one stamp.
+        """
+        if self.frames is None:
+            raise ValueError(f"{self.where}: no message")
+        return _series(*self.frames, self.stamps, self.poses, self.where)
 
 
-def read_tf(reader: Any, path: Path) -> tuple[dict[str, PoseSeries], dict[str, PoseSeries]]:
-    """The TF trees of ``/tf`` and ``/tf_static``: per child frame the series of its parent
-    (``T_parent_child``); each child has one parent.
+class TfCollector:
+    """The TF trees of ``/tf`` and ``/tf_static``, message by message: per child frame its parent
+    and transforms (each child has one parent)."""
 
-    Returns:
-        ``(dynamic, static)``, child frame -> :class:`PoseSeries` (the static ones hold the last
-        transform sent).
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.edges: dict[str, dict[str, list]] = {TF_TOPIC: {}, TF_STATIC_TOPIC: {}}
 
-    Raises:
-        ValueError: naming the bag and TF topic: a frame with two parents, a bad transform.
-    """
-    collected: dict[str, dict[str, list]] = {TF_TOPIC: {}, TF_STATIC_TOPIC: {}}
-    types = topic_types(reader)
-    for topic, edges in collected.items():
-        if types.get(topic) != TF_TYPE:
-            continue
-        where = f"{path}: {topic}"
-        for msgtype, _, raw in messages(reader, path, [topic]):
-            for transform in deserialize(reader, raw, msgtype, where).transforms:
-                parent, child, stamp, pose = pose_of(
-                    transform, "geometry_msgs/msg/TransformStamped", where
+    def add(self, message: Any, topic: str) -> None:
+        """The transforms of a TFMessage of ``topic`` (``/tf_static``: static, any other:
+        changing)."""
+        where = f"{self.path}: {topic}"
+        edges = self.edges[TF_STATIC_TOPIC if topic == TF_STATIC_TOPIC else TF_TOPIC]
+        for transform in message.transforms:
+            parent, child, stamp, pose = pose_of(
+                transform, "geometry_msgs/msg/TransformStamped", where
+            )
+            parent, child = parent.lstrip("/"), child.lstrip("/")
+            known = edges.setdefault(child, [parent, [], []])
+            if known[0] != parent:
+                raise ValueError(
+                    f"{where}: frame {child!r} has two parents, {known[0]!r} and {parent!r}"
                 )
-                parent, child = parent.lstrip("/"), child.lstrip("/")
-                known = edges.setdefault(child, [parent, [], []])
-                if known[0] != parent:
-                    raise ValueError(
-                        f"{where}: frame {child!r} has two parents, {known[0]!r} and {parent!r}"
-                    )
-                known[1].append(stamp)
-                known[2].append(pose)
-    dynamic = {
-        child: _series(parent, child, stamps, poses, f"{path}: {TF_TOPIC} {parent} -> {child}")
-        for child, (parent, stamps, poses) in collected[TF_TOPIC].items()
-    }
-    static = {
-        child: PoseSeries(parent, child, np.zeros(1, np.int64), poses[-1][None])
-        for child, (parent, _, poses) in collected[TF_STATIC_TOPIC].items()
-    }
-    return dynamic, static
+            known[1].append(stamp)
+            known[2].append(pose)
+
+    def trees(self) -> tuple[dict[str, PoseSeries], dict[str, PoseSeries]]:
+        """``(dynamic, static)``: child frame -> :class:`PoseSeries` of ``T_parent_child`` (a
+        static one holds the last transform sent).
+
+        Raises:
+            ValueError: naming the bag and the edge: two transforms at one stamp.
+        """
+        dynamic = {
+            child: _series(
+                parent, child, stamps, poses, f"{self.path}: {TF_TOPIC} {parent} -> {child}"
+            )
+            for child, (parent, stamps, poses) in self.edges[TF_TOPIC].items()
+        }
+        static = {
+            child: PoseSeries(parent, child, np.zeros(1, np.int64), poses[-1][None])
+            for child, (parent, _, poses) in self.edges[TF_STATIC_TOPIC].items()
+        }
+        return dynamic, static
 
 
 def static_transform(static: dict[str, PoseSeries], frame: str, child: str) -> np.ndarray | None:

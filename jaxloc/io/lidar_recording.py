@@ -384,17 +384,18 @@ def open_lidar_recording(
 POSE_FORMATS = ("tum", "kitti", "mcap", "rosbag2")
 
 
-def _pose_format(path: Path, format: str | None) -> str:
-    if format is None:
-        return "mcap" if path.suffix == ".mcap" else "tum"
+def _pose_format(path: Path, format: str) -> str:
+    """The format of ``path``: an ``.mcap`` path is MCAP (``format`` "tum", the default, or
+    "mcap"), any other path the format given."""
     if format not in POSE_FORMATS:
-        raise ValueError(f"format must be one of {POSE_FORMATS} or None, got {format!r}")
-    if (format == "mcap") != (path.suffix == ".mcap"):
+        raise ValueError(f"format must be one of {POSE_FORMATS}, got {format!r}")
+    mcap = path.suffix == ".mcap"
+    if mcap and format not in ("tum", "mcap") or format == "mcap" and not mcap:
         raise ValueError(
-            f"{path}: format {format!r} and the file name disagree (an .mcap path is written "
-            "as format 'mcap', or None)"
+            f"{path}: format {format!r} does not fit the name (an .mcap path is written as "
+            "MCAP, format 'mcap' needs one)"
         )
-    return format
+    return "mcap" if mcap else format
 
 
 def write_lidar_poses(
@@ -402,7 +403,7 @@ def write_lidar_poses(
     recording: LidarRecording,
     poses: np.ndarray,
     valid: np.ndarray,
-    format: str | None = None,
+    format: str = "tum",
 ) -> int:
     """Write estimated ``T_map_scan`` of a recording's scans for evo or for ROS tools
     (atomically).
@@ -411,7 +412,8 @@ def write_lidar_poses(
     stamp in seconds, exact to the nanosecond, or its number where it has none), which evo then
     associates with a reference by time; ``"kitti"``: 12 numbers (3x4) per scan, every scan in
     order, invalid ones with the pose given for them, since KITTI files are matched line by line;
-    ``"mcap"`` (an ``.mcap`` path) or ``"rosbag2"`` (a new ROS 2 bag folder): a
+    ``"mcap"`` (any ``.mcap`` path, whatever text format is asked) or ``"rosbag2"`` (a new ROS 2
+    bag folder): a
     ``geometry_msgs/PoseStamped`` per valid scan on ``/jaxloc/pose`` and a ``std_msgs/Bool``
     verdict per scan on ``/jaxloc/valid``, stamped as the scan (or its number in seconds;
     :func:`~jaxloc.io.rosbag_poses.write_pose_bag`).
@@ -420,14 +422,15 @@ def write_lidar_poses(
         path: the file (or bag folder) to write.
         recording: the scans (their stamps and numbers).
         poses: (N, 4, 4) poses, one per scan; valid: (N,) bool.
-        format: one of :data:`POSE_FORMATS`; None: "mcap" for an ``.mcap`` path, else "tum".
+        format: one of :data:`POSE_FORMATS` ("tum" and "mcap" write an ``.mcap`` path as MCAP;
+            "kitti" and "rosbag2" refuse one).
 
     Returns:
         The number of scans left out (TUM, bags: the invalid ones; KITTI: 0).
 
     Raises:
-        ValueError: another count of poses or flags, an unknown format or one the path's
-            suffix contradicts, or an error of the writer (naming the path).
+        ValueError: another count of poses or flags, an unknown format or one that does not fit
+            the path's name, or an error of the writer (naming the path).
     """
     path = Path(path)
     format = _pose_format(path, format)

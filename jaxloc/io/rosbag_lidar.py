@@ -202,7 +202,7 @@ class RosbagScans:
         reader, where = self._reader[0], self.name(index)
         log_time, rank = self._places[index]
         found = bag.messages(reader, self.path, [self.topic], log_time, log_time + 1)
-        for seen, (msgtype, _, raw) in enumerate(found):
+        for seen, (_, msgtype, _, raw) in enumerate(found):
             if seen == rank:
                 cloud = bag.deserialize(reader, raw, msgtype, where)
                 if bag.stamp_ns(cloud.header) != self.stamps[index]:
@@ -233,63 +233,104 @@ def _frame_transform(static, child: str | None, frame: str, where: str) -> np.nd
     return found
 
 
-def _pose_topic(reader, path: Path, topic: str, frame: str, stamps: np.ndarray):
-    """Poses of ``topic`` (a pose topic or ``/tf``) of the clouds' frame at ``stamps``:
-    ``(poses, covered, (first, last) stamp)``, or None for TF that does not move ``frame``."""
-    if bag.topic_types(reader).get(topic) == bag.TF_TYPE:
-        dynamic, static = bag.read_tf(reader, path)
-        chain = bag.tf_chain(dynamic, static, frame)
+def _topics(
+    reader, path: Path, topic, odometry_topic, gt_topic
+) -> tuple[str, str | None, str | None]:
+    """The clouds', odometry's and ground truth's topics (see :func:`open_rosbag_scans`)."""
+    types = bag.topic_types(reader)
+    clouds = bag.pick_topic(reader, path, (CLOUD_TYPE,), topic, "topic=", "PointCloud2")
+    if clouds is None:
+        listed = sorted(f"{name} ({msgtype})" for name, msgtype in types.items())
+        raise ValueError(f"{path}: no sensor_msgs/PointCloud2 topic (topics: {listed})")
+    odometry = None
+    if odometry_topic is None:
+        odometry = bag.pick_topic(
+            reader, path, (ODOMETRY_TYPE,), None, "odometry_topic=", "odometry"
+        )
+        if odometry is None and types.get(bag.TF_TOPIC) == bag.TF_TYPE:
+            odometry = bag.TF_TOPIC
+    elif odometry_topic != NO_ODOMETRY and types.get(odometry_topic) != bag.TF_TYPE:
+        kinds = bag.POSE_TYPES + (bag.TF_TYPE,)
+        odometry = bag.pick_topic(reader, path, kinds, odometry_topic, "odometry_topic=", "pose")
+    elif odometry_topic != NO_ODOMETRY:
+        odometry = odometry_topic
+    truth = None
+    if gt_topic is not None:
+        truth = bag.pick_topic(reader, path, bag.POSE_TYPES, gt_topic, "gt_topic=", "pose")
+    return clouds, odometry, truth
+
+
+class _Collected:
+    """What one pass over the bag gathers: the clouds' frame, log times and stamps, the poses of
+    the odometry and ground-truth topics, the TF trees."""
+
+    def __init__(self, path: Path, pose_topics: set[str]) -> None:
+        self.frame: str | None = None
+        self.log_times: list[int] = []
+        self.stamps: list[int] = []
+        self.poses = {topic: bag.PoseCollector(path, topic) for topic in pose_topics}
+        self.tf = bag.TfCollector(path)
+
+    def cloud(self, cloud, log_time: int, where: str, fields: tuple) -> None:
+        cloud_dtype(cloud, where, *fields)
+        stamp = bag.stamp_ns(cloud.header)
+        if self.stamps and stamp <= self.stamps[-1]:
+            raise ValueError(
+                f"{where}: stamp {_seconds(stamp)} is not after the previous cloud's "
+                f"({_seconds(self.stamps[-1])}); the stamps must increase"
+            )
+        if self.frame is not None and cloud.header.frame_id != self.frame:
+            raise ValueError(f"{where}: frame {cloud.header.frame_id!r}, not {self.frame!r}")
+        self.frame = cloud.header.frame_id
+        self.log_times.append(log_time)
+        self.stamps.append(stamp)
+
+
+def _poses_at(found: _Collected, topic: str, stamps: np.ndarray, where: str):
+    """Poses of ``topic`` (a pose topic or TF) of the clouds' frame at ``stamps``:
+    ``(poses, covered, (first, last) stamp)``, or None for TF that does not move the frame."""
+    dynamic, static = found.tf.trees()
+    if topic not in found.poses:
+        chain = bag.tf_chain(dynamic, static, found.frame)
         moving = [edge for edge in chain if dynamic.get(edge.child) is edge]
         if not moving:
             return None
         poses, covered = bag.chain_poses(chain, dynamic, stamps)
         first = max(int(edge.stamps[0]) for edge in moving)
         return poses, covered, (first, min(int(edge.stamps[-1]) for edge in moving))
-    series = bag.read_pose_topic(reader, path, topic)
-    elsewhere = series.child is not None and series.child.lstrip("/") != frame.lstrip("/")
-    static = bag.read_tf(reader, path)[1] if elsewhere else {}
-    extrinsic = _frame_transform(static, series.child, frame, f"{path}: {topic}")
+    series = found.poses[topic].series()
+    extrinsic = _frame_transform(static, series.child, found.frame, where)
     poses, covered = bag.interpolate(series, stamps)
     return poses @ extrinsic, covered, (int(series.stamps[0]), int(series.stamps[-1]))
 
 
-def _odometry(reader, path: Path, topic: str | None, frame: str, stamps, cloud_topic: str):
-    if topic == NO_ODOMETRY:
-        return None, None
-    types = bag.topic_types(reader)
-    if topic is None or types.get(topic) != bag.TF_TYPE:
-        pose_types = (ODOMETRY_TYPE,) if topic is None else bag.POSE_TYPES
-        topic = bag.pick_topic(reader, path, pose_types, topic, "odometry_topic=", "odometry")
+def _odometry(found: _Collected, path: Path, topic, named: bool, stamps, clouds: str):
     if topic is None:
-        if types.get(bag.TF_TOPIC) != bag.TF_TYPE:
-            return None, None
-        found, topic = _pose_topic(reader, path, bag.TF_TOPIC, frame, stamps), bag.TF_TOPIC
-    else:
-        found = _pose_topic(reader, path, topic, frame, stamps)
-        if found is None:
-            raise ValueError(f"{path}: {topic} does not move the clouds' frame {frame!r}")
-    if found is None:
         return None, None
-    poses, covered, (first, last) = found
+    at = _poses_at(found, topic, stamps, f"{path}: {topic}")
+    if at is None and named:
+        raise ValueError(f"{path}: {topic} does not move the clouds' frame {found.frame!r}")
+    if at is None:
+        return None, None
+    poses, covered, (first, last) = at
     if not covered.all():
         miss = int(np.flatnonzero(~covered)[0])
         raise ValueError(
             f"{path}: odometry {topic} ({_seconds(first)} to {_seconds(last)}) does not cover "
-            f"scan {miss} of {cloud_topic} ({_seconds(int(stamps[miss]))}); pass "
+            f"scan {miss} of {clouds} ({_seconds(int(stamps[miss]))}); pass "
             f"odometry_topic={NO_ODOMETRY!r} to read none"
         )
     return poses, topic
 
 
-def _ground_truth(reader, path: Path, topic: str | None, frame: str, stamps, cloud_topic: str):
+def _ground_truth(found: _Collected, path: Path, topic, stamps, clouds: str):
     if topic is None:
         return None, np.zeros(len(stamps), bool)
-    bag.pick_topic(reader, path, bag.POSE_TYPES, topic, "gt_topic=", "pose")
-    poses, covered, (first, last) = _pose_topic(reader, path, topic, frame, stamps)
+    poses, covered, (first, last) = _poses_at(found, topic, stamps, f"{path}: {topic}")
     if not covered.any():
         raise ValueError(
             f"{path}: ground truth {topic} ({_seconds(first)} to {_seconds(last)}) covers no "
-            f"scan of {cloud_topic} ({_seconds(int(stamps[0]))} to {_seconds(int(stamps[-1]))})"
+            f"scan of {clouds} ({_seconds(int(stamps[0]))} to {_seconds(int(stamps[-1]))})"
         )
     return poses, covered
 
@@ -337,38 +378,33 @@ def open_rosbag_scans(
     """
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
-    path = Path(path)
+    path, fields = Path(path), (label_field, instance_field)
     reader = bag.open_bag(path)
     try:
-        cloud_topic = bag.pick_topic(reader, path, (CLOUD_TYPE,), topic, "topic=", "PointCloud2")
-        if cloud_topic is None:
-            topics = sorted(f"{n} ({t})" for n, t in bag.topic_types(reader).items())
-            raise ValueError(f"{path}: no sensor_msgs/PointCloud2 topic (topics: {topics})")
-        frame, log_times, stamps = None, [], []
-        for msgtype, log_time, raw in bag.messages(reader, path, [cloud_topic]):
-            where = f"{path}:{cloud_topic}[{len(stamps)}]"
-            cloud = bag.deserialize(reader, raw, msgtype, where)
-            cloud_dtype(cloud, where, label_field, instance_field)
-            stamp = bag.stamp_ns(cloud.header)
-            if stamps and stamp <= stamps[-1]:
-                raise ValueError(
-                    f"{where}: stamp {_seconds(stamp)} is not after the previous cloud's "
-                    f"({_seconds(stamps[-1])}); the stamps must increase"
-                )
-            if frame is not None and cloud.header.frame_id != frame:
-                raise ValueError(f"{where}: frame {cloud.header.frame_id!r}, not {frame!r}")
-            frame = cloud.header.frame_id
-            log_times.append(log_time)
-            stamps.append(stamp)
-        if frame is None:
-            raise ValueError(f"{path}: {cloud_topic} holds no cloud")
-        numbers = tuple(range(0, len(stamps), every))
-        kept = np.asarray(stamps, np.int64)[list(numbers)]
-        ranks = _ranks(log_times)
-        places = [ranks[n] for n in numbers]
-        odometry = _odometry(reader, path, odometry_topic, frame, kept, cloud_topic)
-        truth = _ground_truth(reader, path, gt_topic, frame, kept, cloud_topic)
+        clouds, odometry, truth = _topics(reader, path, topic, odometry_topic, gt_topic)
+        types = bag.topic_types(reader)
+        tf_topics = {t for t in (odometry, bag.TF_STATIC_TOPIC) if types.get(t) == bag.TF_TYPE}
+        pose_topics = {t for t in (odometry, truth) if t is not None} - tf_topics
+        found = _Collected(path, pose_topics)
+        wanted = [clouds, *sorted(pose_topics | tf_topics)]
+        for name, msgtype, log_time, raw in bag.messages(reader, path, wanted):
+            where = f"{path}:{name}[{len(found.stamps)}]" if name == clouds else f"{path}: {name}"
+            message = bag.deserialize(reader, raw, msgtype, where)
+            if name == clouds:
+                found.cloud(message, log_time, where, fields)
+            elif name in tf_topics:
+                found.tf.add(message, name)
+            if name in found.poses:
+                found.poses[name].add(message, msgtype)
     finally:
         reader.close()
-    fields = (label_field, instance_field)
-    return RosbagScans(path, cloud_topic, frame, numbers, kept, places, odometry, truth, fields)
+    if found.frame is None:
+        raise ValueError(f"{path}: {clouds} holds no cloud")
+    numbers = tuple(range(0, len(found.stamps), every))
+    stamps = np.asarray(found.stamps, np.int64)[list(numbers)]
+    ranks = _ranks(found.log_times)
+    named = odometry_topic is not None
+    moving = _odometry(found, path, odometry, named, stamps, clouds)
+    judged = _ground_truth(found, path, truth, stamps, clouds)
+    places = [ranks[n] for n in numbers]
+    return RosbagScans(path, clouds, found.frame, numbers, stamps, places, moving, judged, fields)
