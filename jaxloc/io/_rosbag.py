@@ -85,16 +85,19 @@ def messages(reader: Any, path: Path, topics: Sequence[str], start=None, stop=No
     if not connections:
         return
     iterator = reader.messages(connections, start, stop)
-    while True:
-        try:
-            connection, log_time, raw = next(iterator)
-        except StopIteration:
-            return
-        except Exception as error:
-            raise ValueError(
-                f"{path}: damaged bag, reading {', '.join(topics)} ({_reason(error)})"
-            ) from None
-        yield connection.topic, connection.msgtype, log_time, raw
+    try:
+        while True:
+            try:
+                connection, log_time, raw = next(iterator)
+            except StopIteration:
+                return
+            except Exception as error:
+                raise ValueError(
+                    f"{path}: damaged bag, reading {', '.join(topics)} ({_reason(error)})"
+                ) from None
+            yield connection.topic, connection.msgtype, log_time, raw
+    finally:
+        iterator.close()  # a reader left half-way keeps no cursor open
 
 
 def deserialize(reader: Any, raw: bytes, msgtype: str, where: str) -> Any:

@@ -23,8 +23,9 @@ Odometry (``odometry_topic``): the only ``nav_msgs/Odometry`` topic, else named 
 :data:`~jaxloc.io._rosbag.POSE_TYPES`, or ``/tf``); a bag without one uses ``/tf`` when it moves
 the clouds' frame; ``"none"`` reads none. Its poses are interpolated to the clouds' stamps
 (:func:`jaxloc.io._rosbag.interpolate`), moved to the clouds' frame through ``/tf_static``
-where the odometry's child frame is another, and must cover every scan. Ground truth
-(``gt_topic``, a pose topic named) is read the same way, a scan outside it having no pose.
+where the odometry's child frame is another (a ``PoseStamped`` names no child frame: its poses
+are taken as the LiDAR's), and must cover every scan. Ground truth (``gt_topic``, a pose topic
+named) is read the same way, a scan outside it having no pose.
 """
 
 from __future__ import annotations
@@ -202,13 +203,17 @@ class RosbagScans:
         reader, where = self._reader[0], self.name(index)
         log_time, rank = self._places[index]
         found = bag.messages(reader, self.path, [self.topic], log_time, log_time + 1)
-        for seen, (_, msgtype, _, raw) in enumerate(found):
-            if seen == rank:
-                cloud = bag.deserialize(reader, raw, msgtype, where)
-                if bag.stamp_ns(cloud.header) != self.stamps[index]:
+        cloud = None
+        try:
+            for seen, (_, msgtype, _, raw) in enumerate(found):
+                if seen == rank:
+                    cloud = bag.deserialize(reader, raw, msgtype, where)
                     break
-                return read_cloud(cloud, where, self.label_field, self.instance_field)
-        raise ValueError(f"{where}: the message is not where it was (the bag changed?)")
+        finally:
+            found.close()
+        if cloud is None or bag.stamp_ns(cloud.header) != self.stamps[index]:
+            raise ValueError(f"{where}: the message is not where it was (the bag changed?)")
+        return read_cloud(cloud, where, self.label_field, self.instance_field)
 
     def close(self) -> None:
         """Close the bag (a later :meth:`scan` opens it again)."""
