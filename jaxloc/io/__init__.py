@@ -25,8 +25,15 @@ files (:func:`open_lidar_recording`, poses out with :func:`write_lidar_poses`); 
 TripletLoc instance maps and road normals (:func:`read_instance_map`,
 :func:`read_road_normals`, :func:`write_instance_maps`).
 
+Recordings may also be ROS 1 ``.bag`` files, ROS 2 bag folders (sqlite3 or MCAP) or bare
+``.mcap`` files (read with ``rosbags``, no ROS installation needed).
+
 Poses: KITTI, 4x4-row and TUM files (:func:`read_pose_file`, :func:`write_tum`,
-:func:`write_kitti`).
+:func:`write_kitti`); poses for ROS tools (Foxglove, RViz) as ``geometry_msgs/PoseStamped`` in an
+``.mcap`` file or a ROS 2 bag (:func:`write_pose_bag`).
+
+A 3D view: :func:`write_rerun` (an SG2Loc run) and :func:`write_drive_rerun` (an M2Loc drive)
+write Rerun recordings (``.rrd``; ``pip install "jaxloc[viz]"``).
 
 The format modules (``jaxloc.io.scannet_sens``, ``jaxloc.io.lidar_sequence``, ...) hold the
 lower-level readers these are built from.
@@ -75,9 +82,12 @@ __all__ = [
     "save_scene",
     "save_triplet_map",
     "write_camera_poses",
+    "write_drive_rerun",
     "write_instance_maps",
     "write_kitti",
     "write_lidar_poses",
+    "write_pose_bag",
+    "write_rerun",
     "write_tum",
 ]
 
@@ -107,6 +117,8 @@ if TYPE_CHECKING:  # where each public name comes from (jaxloc._lazy imports it 
     from jaxloc.io.ply import read_labelled_ply
     from jaxloc.io.poses import PoseFile, read_pose_file, write_kitti, write_tum
     from jaxloc.io.reconstruction import LabelledReconstruction, ReconstructionObject
+    from jaxloc.io.rerun_log import write_drive_rerun, write_rerun
+    from jaxloc.io.rosbag_poses import write_pose_bag
     from jaxloc.io.rscan import read_3rscan
     from jaxloc.io.scannet import read_label_table, read_scannet
     from jaxloc.io.scene_map import ClassEmbeddings, load_class_embeddings, load_scene, save_scene

@@ -54,7 +54,7 @@ import numpy as np
 
 from jaxloc._lazy import renamed_names
 from jaxloc.io.poses import read_pose_file
-from jaxloc.io.semantickitti import LabelledScan
+from jaxloc.io.semantickitti import LabelledScan, check_point_range
 
 _F4, _U1, _U2, _U4, _I4 = "<f4", "<u1", "<u2", "<u4", "<i4"
 _XYZ = [("x", _F4), ("y", _F4), ("z", _F4)]
@@ -192,7 +192,8 @@ def read_helipr_scan(
     Raises:
         FileNotFoundError: a missing file.
         ValueError: naming the file: partial records, a label count that differs from the point
-            count, NaN/inf coordinates.
+            count, NaN/inf coordinates or points beyond
+            :data:`~jaxloc.io.semantickitti.MAX_RANGE_M`.
     """
     records = read_helipr_points(bin_path, point_format, stamp_ns)
     points = np.column_stack([records["x"], records["y"], records["z"]]).astype(np.float32)
@@ -201,8 +202,7 @@ def read_helipr_scan(
         raise ValueError(
             f"{label_path}: {labels.size} labels for {points.shape[0]} points in {bin_path}"
         )
-    if not np.all(np.isfinite(points)):
-        raise ValueError(f"{bin_path}: non-finite point coordinates")
+    check_point_range(points, str(bin_path))
     return LabelledScan(points.reshape(-1, 3), labels, instances)
 
 

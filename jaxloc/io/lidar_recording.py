@@ -12,7 +12,11 @@ stamps and poses, each scan read on demand.
 * ``NAME.txt``, instance centroids already extracted: lines ``class_id x y z`` (scan frame, metres;
   ``#`` starts a comment; :func:`read_centroid_scan`);
 * a folder with ``instances/<class>.txt``, a scan in the map's own format
-  (:func:`~jaxloc.io.read_instance_map`).
+  (:func:`~jaxloc.io.read_instance_map`);
+* a bag, given alone: a ROS 1 ``.bag``, a ROS 2 bag folder or a bare ``.mcap``, its labelled
+  ``sensor_msgs/PointCloud2`` clouds with their header stamps, the bag's odometry and ground
+  truth (:mod:`jaxloc.io.rosbag_lidar`; ``topic``, ``odometry_topic``, ``gt_topic``,
+  ``label_field``, ``instance_field``).
 
 ``gt=FILE`` replaces the poses by a pose file's (KITTI, 4x4 or TUM / HeLiPR lines,
 :func:`~jaxloc.io.read_pose_file`): by time when the file and every scan have timestamps (exact
@@ -20,7 +24,8 @@ for nanoseconds, within 1 ms for seconds; a scan without a pose at its time gets
 i for the i-th scan (the counts must agree); :meth:`LidarRecording.with_poses` does the same for
 an odometry file. Labelled scans become instance centroids with TripletLoc's recipe
 (:func:`jaxloc.m2loc.cluster_instances`). Cheap checks (files present, formats known, labels
-found) run when the recording is opened, so a bad argument fails before any work.
+found, every option applying to the input) run when the recording is opened, so a bad argument
+fails before any work.
 """
 
 from __future__ import annotations
@@ -33,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxloc._lazy import renamed_names
-from jaxloc.io import helipr
+from jaxloc.io import _rosbag, helipr
 from jaxloc.io._text import data_lines
 from jaxloc.io.instance_maps import read_instance_map
 from jaxloc.io.lidar_sequence import (
@@ -44,7 +49,9 @@ from jaxloc.io.lidar_sequence import (
     read_sequence_scan,
 )
 from jaxloc.io.poses import read_pose_file, write_kitti, write_tum
-from jaxloc.io.semantickitti import LabelledScan, read_semantickitti_scan
+from jaxloc.io.rosbag_lidar import RosbagScans, open_rosbag_scans
+from jaxloc.io.rosbag_poses import write_pose_bag
+from jaxloc.io.semantickitti import LabelledScan, check_point_range, read_semantickitti_scan
 from jaxloc.m2loc import cluster_instances
 from jaxloc.m2loc._classes import GRAPH_CLASSES
 from jaxloc.m2loc._drive import ScanInstances
@@ -59,16 +66,23 @@ class LidarRecording:
     ``ScanSource``, what :func:`jaxloc.m2loc.localize_drive` reads).
 
     Attributes:
-        paths: per scan its file (``.bin``, centroid ``.txt``) or instance-map folder.
-        numbers: per scan its number: its index in its sequence folder, else its position among
-            the scans.
-        stamps: per scan its time in integer nanoseconds (HeLiPR names, ``times.txt``), or None.
+        paths: per scan its file (``.bin``, centroid ``.txt``), instance-map folder or bag.
+        numbers: per scan its number: its index in its sequence folder or among its bag topic's
+            clouds, else its position among the scans.
+        stamps: per scan its time in integer nanoseconds (HeLiPR names, ``times.txt``, a cloud's
+            header), or None.
         poses: (N, 4, 4) float64 ``T_map_scan`` of the LiDAR (identity where a scan has none), or
             None when no scan has one.
         has_pose: (N,) bool, the scans ``poses`` holds a pose for.
         sequences: the sequence folders the scans come from
             (:class:`~jaxloc.io.LidarSequence`: layout, sensor, scans left out without a pose).
-        sources: per scan the index of its sequence in ``sequences``, or -1 for a scan given alone.
+        sources: per scan the index of its sequence in ``sequences``, or -1 for a scan given alone
+            or read from a bag.
+        odometry: (N, 4, 4) float64 ``T_odom_scan`` from the recording's own odometry (a bag's,
+            interpolated to the scans' stamps), or None; pass it as ``localize_drive``'s
+            ``odometry`` (``poses`` is the ground truth).
+        bag: the bag the scans are read from (:class:`~jaxloc.io.rosbag_lidar.RosbagScans`), or
+            None.
     """
 
     paths: tuple[Path, ...]
@@ -78,6 +92,8 @@ class LidarRecording:
     has_pose: np.ndarray
     sequences: tuple[LidarSequence, ...] = ()
     sources: tuple[int, ...] = ()
+    odometry: np.ndarray | None = None
+    bag: RosbagScans | None = None
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -90,8 +106,8 @@ class LidarRecording:
         return np.asarray(self.stamps, np.int64)
 
     def name(self, index: int) -> str:
-        """The scan's path, as errors name it."""
-        return str(self.paths[index])
+        """The scan's path (a bag's scan: ``BAG:TOPIC[number]``), as errors name it."""
+        return str(self.paths[index]) if self.bag is None else self.bag.name(index)
 
     def scan(self, index: int) -> LabelledScan:
         """Scan ``index``'s labelled points (class ids, sensor frame).
@@ -101,6 +117,8 @@ class LidarRecording:
                 file; a scan given as instance centroids, which has no points).
         """
         path, source = self.paths[index], self.sources[index]
+        if self.bag is not None:
+            return self.bag.scan(index)
         if source >= 0:
             return read_sequence_scan(self.sequences[source], self.numbers[index])
         _check_scan_file(path)
@@ -120,7 +138,11 @@ class LidarRecording:
                 malformed lines or class ids outside ``classes``).
         """
         path = self.paths[index]
-        if self.sources[index] < 0 and (path.is_dir() or path.suffix != ".bin"):
+        if (
+            self.bag is None
+            and self.sources[index] < 0
+            and (path.is_dir() or path.suffix != ".bin")
+        ):
             _check_scan_file(path)
             if path.is_dir():
                 found = read_instance_map(path, tuple(classes))
@@ -189,7 +211,8 @@ def read_centroid_scan(
 
     Raises:
         ValueError: naming the file (and line): not UTF-8 text, a wrong field count, a
-            non-number or NaN/inf, non-integer or unknown class ids.
+            non-number or NaN/inf, non-integer or unknown class ids, a centroid beyond
+            :data:`~jaxloc.io.semantickitti.MAX_RANGE_M` of the sensor.
     """
     rows = []
     for line_number, line in data_lines(path, comments=True):
@@ -212,6 +235,7 @@ def read_centroid_scan(
     unknown = sorted(set(labels.astype(int).tolist()) - set(classes))
     if unknown:
         raise ValueError(f"{path}: unknown class ids {unknown}; expected some of {list(classes)}")
+    check_point_range(table[:, 1:4], str(path))
     return table[:, 1:4], labels.astype(np.int64)
 
 
@@ -221,6 +245,41 @@ def _is_sequence(path: Path, layout: str | None) -> bool:
     return layout is not None or is_sequence_dir(path)
 
 
+def _check_options(paths: list[Path], sequences, options: dict, bag_options: dict) -> None:
+    """Every option given applies to the input: ``layout`` and ``every`` to sequence folders,
+    ``sensor`` to HeLiPR sequences, the bag options to a bag."""
+    what = f"{paths[0]}{' ...' if len(paths) > 1 else ''}"
+    given = {name: value for name, value in options.items() if value not in (None, 1)}
+    if not sequences and given:
+        name, value = next(iter(given.items()))
+        raise ValueError(f"{what}: {name}={value!r} applies to sequence folders; none is given")
+    if options["sensor"] is not None and not any(s.layout == "helipr" for s in sequences):
+        raise ValueError(
+            f"{what}: sensor={options['sensor']!r} applies to HeLiPR sequence folders "
+            "(LiDAR/<sensor>/); none is given"
+        )
+    for name, value in bag_options.items():
+        if value is not None:
+            raise ValueError(f"{what}: {name}={value!r} applies to bags; none is given")
+
+
+def _open_bag(path: Path, every: int, gt, bag_options: dict) -> LidarRecording:
+    if bag_options["gt_topic"] is not None and gt is not None:
+        raise ValueError(f"{path}: give gt= or gt_topic=, not both")
+    scans = open_rosbag_scans(path, every=every, **bag_options)
+    recording = LidarRecording(
+        (path,) * len(scans),
+        scans.numbers,
+        tuple(int(t) for t in scans.stamps),
+        scans.ground_truth,
+        scans.has_ground_truth,
+        sources=(-1,) * len(scans),
+        odometry=scans.odometry,
+        bag=scans,
+    )
+    return recording if gt is None else recording.with_poses(gt)
+
+
 def open_lidar_recording(
     path: str | os.PathLike | Sequence[str | os.PathLike],
     *,
@@ -228,17 +287,29 @@ def open_lidar_recording(
     sensor: str | None = None,
     every: int = 1,
     gt: str | os.PathLike | None = None,
+    topic: str | None = None,
+    odometry_topic: str | None = None,
+    gt_topic: str | None = None,
+    label_field: str | None = None,
+    instance_field: str | None = None,
 ) -> LidarRecording:
-    """Open a LiDAR recording: a sequence folder, a scan file or a list of them (see the module
-    docstring). Nothing is read but the file lists, stamps, poses and calibration.
+    """Open a LiDAR recording: a sequence folder, a scan file, a list of them, or a bag (see the
+    module docstring). Nothing is read but the file lists, stamps, poses and calibration (of a
+    bag: its topics, the clouds' headers, odometry and ground truth).
 
     Args:
-        path: a path or a list of paths (sequence folders, scans), in order.
+        path: a path or a list of paths (sequence folders, scans), in order; or one bag.
         layout: the layout of sequence folders ("semantickitti", "plain", "helipr"; default
             detected); given, any folder without ``instances/`` is read as a sequence.
         sensor: the HeLiPR scan folder (``LiDAR/<sensor>/``; default the only one, else Ouster).
-        every: of a sequence folder, every ``every``-th scan.
+        every: of a sequence folder or a bag, every ``every``-th scan.
         gt: a pose file that replaces the poses (:meth:`LidarRecording.with_poses`).
+        topic: a bag's PointCloud2 topic (default: the only one).
+        odometry_topic: a bag's odometry topic (default: the only ``nav_msgs/Odometry``, else
+            ``/tf``; ``"none"``: none): ``LidarRecording.odometry``.
+        gt_topic: a bag's pose topic of ground truth ``T_map_scan``: the poses.
+        label_field, instance_field: a bag's label and instance fields
+            (:mod:`jaxloc.io.rosbag_lidar`).
 
     Returns:
         A :class:`LidarRecording`.
@@ -246,14 +317,35 @@ def open_lidar_recording(
     Raises:
         FileNotFoundError, ValueError: naming the file: a missing scan, folder or label file, an
             unknown scan format, a HeLiPR scan not named by its stamp, any error of
-            :func:`~jaxloc.io.lidar_sequence.open_lidar_sequence` or of the pose file.
+            :func:`~jaxloc.io.lidar_sequence.open_lidar_sequence`, of
+            :func:`~jaxloc.io.rosbag_lidar.open_rosbag_scans` or of the pose file; an option
+            that does not apply to the input (``sensor`` without a HeLiPR sequence, a bag
+            option without a bag, ``layout`` with a bag).
     """
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
-    paths = [path] if isinstance(path, str | os.PathLike) else list(path)
+    paths = [Path(path)] if isinstance(path, str | os.PathLike) else list(map(Path, path))
+    bag_options = dict(
+        topic=topic,
+        odometry_topic=odometry_topic,
+        gt_topic=gt_topic,
+        label_field=label_field,
+        instance_field=instance_field,
+    )
+    options = dict(layout=layout, sensor=sensor, every=every)
+    bags = [item for item in paths if _rosbag.is_bag(item)]
+    if bags:
+        if len(paths) > 1:
+            raise ValueError(f"{bags[0]}: a bag is read alone, not in a list of {len(paths)} paths")
+        for name in ("layout", "sensor"):
+            if options[name] is not None:
+                raise ValueError(
+                    f"{bags[0]}: {name}={options[name]!r} applies to sequence folders, not a bag"
+                )
+        return _open_bag(paths[0], every, gt, bag_options)
     scans, numbers, stamps, poses, sources = [], [], [], [], []
     sequences: list[LidarSequence] = []
-    for item in map(Path, paths):
+    for item in paths:
         if not _is_sequence(item, layout):
             _check_scan_file(item)
             found = helipr.helipr_scan_label(item)
@@ -271,6 +363,7 @@ def open_lidar_recording(
             poses.append(None if sequence.T_map_scan is None else sequence.T_map_scan[index])
             sources.append(len(sequences))
         sequences.append(sequence)
+    _check_options(paths, sequences, options, bag_options)
     has_pose = np.array([pose is not None for pose in poses], bool)
     stacked = None
     if has_pose.any():
@@ -287,6 +380,24 @@ def open_lidar_recording(
     return recording if gt is None else recording.with_poses(gt)
 
 
+#: What :func:`write_lidar_poses` writes: text for evo, or a bag for ROS tools.
+POSE_FORMATS = ("tum", "kitti", "mcap", "rosbag2")
+
+
+def _pose_format(path: Path, format: str) -> str:
+    """The format of ``path``: an ``.mcap`` path is MCAP (``format`` "tum", the default, or
+    "mcap"), any other path the format given."""
+    if format not in POSE_FORMATS:
+        raise ValueError(f"format must be one of {POSE_FORMATS}, got {format!r}")
+    mcap = path.suffix == ".mcap"
+    if mcap and format not in ("tum", "mcap") or format == "mcap" and not mcap:
+        raise ValueError(
+            f"{path}: format {format!r} does not fit the name (an .mcap path is written as "
+            "MCAP, format 'mcap' needs one)"
+        )
+    return "mcap" if mcap else format
+
+
 def write_lidar_poses(
     path: str | os.PathLike,
     recording: LidarRecording,
@@ -294,22 +405,35 @@ def write_lidar_poses(
     valid: np.ndarray,
     format: str = "tum",
 ) -> int:
-    """Write estimated ``T_map_scan`` of a recording's scans for evo (atomically).
+    """Write estimated ``T_map_scan`` of a recording's scans for evo or for ROS tools
+    (atomically).
 
     ``format="tum"``: lines ``t x y z qx qy qz qw`` of the VALID scans only (``t`` the scan's
     stamp in seconds, exact to the nanosecond, or its number where it has none), which evo then
     associates with a reference by time; ``"kitti"``: 12 numbers (3x4) per scan, every scan in
-    order, invalid ones with the pose given for them, since KITTI files are matched line by line.
+    order, invalid ones with the pose given for them, since KITTI files are matched line by line;
+    ``"mcap"`` (any ``.mcap`` path, whatever text format is asked) or ``"rosbag2"`` (a new ROS 2
+    bag folder): a
+    ``geometry_msgs/PoseStamped`` per valid scan on ``/jaxloc/pose`` and a ``std_msgs/Bool``
+    verdict per scan on ``/jaxloc/valid``, stamped as the scan (or its number in seconds;
+    :func:`~jaxloc.io.rosbag_poses.write_pose_bag`).
 
     Args:
-        path: the file to write.
+        path: the file (or bag folder) to write.
         recording: the scans (their stamps and numbers).
         poses: (N, 4, 4) poses, one per scan; valid: (N,) bool.
-        format: "tum" or "kitti".
+        format: one of :data:`POSE_FORMATS` ("tum" and "mcap" write an ``.mcap`` path as MCAP;
+            "kitti" and "rosbag2" refuse one).
 
     Returns:
-        The number of scans left out (TUM: the invalid ones; KITTI: 0).
+        The number of scans left out (TUM, bags: the invalid ones; KITTI: 0).
+
+    Raises:
+        ValueError: another count of poses or flags, an unknown format or one that does not fit
+            the path's name, or an error of the writer (naming the path).
     """
+    path = Path(path)
+    format = _pose_format(path, format)
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     valid = np.asarray(valid, bool)
     if len(poses) != len(recording) or valid.shape != (len(recording),):
@@ -317,8 +441,6 @@ def write_lidar_poses(
     if format == "kitti":
         write_kitti(path, poses)
         return 0
-    if format != "tum":
-        raise ValueError(f"format must be 'tum' or 'kitti', got {format!r}")
     stamps = np.array(
         [
             n * 10**9 if t is None else t
@@ -326,7 +448,10 @@ def write_lidar_poses(
         ],
         np.int64,
     )
-    write_tum(path, poses[valid], stamps[valid])
+    if format == "tum":
+        write_tum(path, poses[valid], stamps[valid])
+    else:
+        write_pose_bag(path, stamps, poses, valid)
     return int((~valid).sum())
 
 

@@ -2,6 +2,11 @@
 
 Class ids follow TripletLoc/Cylinder3D: SemanticKITTI learning ids minus one (13 fence,
 14 vegetation, 15 trunk, 16 terrain, 17 pole, 18 traffic sign); unlabeled points get -1.
+
+Every LiDAR reader (these files, HeLiPR's, centroid files, bags) refuses what no sensor records:
+a point farther than :data:`MAX_RANGE_M` from the sensor (:func:`check_point_range`; such
+coordinates come from records of another type, e.g. float64 read as float32) and, for raw
+SemanticKITTI ids, an id the learning map does not know (:func:`checked_class_ids`).
 """
 
 from __future__ import annotations
@@ -19,6 +24,49 @@ _LEARNING_MAP = {
     40: 9, 44: 10, 48: 11, 49: 12, 50: 13, 51: 14, 52: 0, 60: 9, 70: 15, 71: 16, 72: 17,
     80: 18, 81: 19, 99: 0, 252: 1, 253: 7, 254: 6, 255: 8, 256: 5, 257: 5, 258: 4, 259: 5,
 }  # fmt: skip
+
+
+#: The raw SemanticKITTI ids (semantic-kitti.yaml), sorted.
+SEMANTICKITTI_IDS = tuple(sorted(_LEARNING_MAP))
+#: Metres: no point of a scan is farther from its sensor. Automotive and mapping LiDARs return
+#: points up to 200-500 m (Ouster OS2 240 m, Livox Avia 450 m, Aeva Aeries II 500 m); twice the
+#: longest leaves a margin, while points read from records of another type (float64 words read
+#: as float32) reach 1e19 m and more.
+MAX_RANGE_M = 1000.0
+
+
+def check_point_range(points: np.ndarray, where: str) -> None:
+    """Raise ``ValueError`` naming ``where`` unless every point of ``points`` (N, 3) (sensor
+    frame, metres) is finite and at most :data:`MAX_RANGE_M` from the sensor."""
+    if not np.all(np.isfinite(points)):
+        raise ValueError(f"{where}: non-finite point coordinates")
+    ranges = np.linalg.norm(np.asarray(points, np.float64).reshape(-1, 3), axis=1)
+    far = np.flatnonzero(ranges > MAX_RANGE_M)
+    if far.size:
+        raise ValueError(
+            f"{where}: {far.size} point(s) beyond {MAX_RANGE_M:g} m of the sensor (point "
+            f"{far[0]} at {ranges[far[0]]:.3g} m): not metres in the sensor frame, or records of "
+            "another type"
+        )
+
+
+def checked_class_ids(raw_ids: np.ndarray, where: str) -> np.ndarray:
+    """Raw SemanticKITTI semantic ids (N,) as class ids (:func:`semantickitti_class_ids`),
+    refusing ids the learning map does not know.
+
+    Raises:
+        ValueError: naming ``where`` and the first unknown id.
+    """
+    raw = np.asarray(raw_ids, np.int64)
+    unknown = np.setdiff1d(np.unique(raw), SEMANTICKITTI_IDS)
+    if unknown.size:
+        more = f" (and {unknown.size - 1} other id(s))" if unknown.size > 1 else ""
+        raise ValueError(
+            f"{where}: label id {unknown[0]}{more} is not in SemanticKITTI's learning map "
+            f"(semantic-kitti.yaml: {len(SEMANTICKITTI_IDS)} ids from {SEMANTICKITTI_IDS[0]} to "
+            f"{SEMANTICKITTI_IDS[-1]})"
+        )
+    return semantickitti_class_ids(raw)
 
 
 def semantickitti_class_ids(raw_labels: np.ndarray) -> np.ndarray:
@@ -42,7 +90,8 @@ def read_semantickitti_scan(bin_path: str | Path, label_path: str | Path) -> Lab
     """Read a SemanticKITTI scan: ``.bin`` float32 (x, y, z, intensity), ``.label`` uint32.
 
     Raises:
-        ValueError: on sizes that are not whole records, mismatched counts or non-finite points.
+        ValueError: naming the file: sizes that are not whole records, mismatched counts,
+            non-finite points or points beyond :data:`MAX_RANGE_M`, ids not in the learning map.
     """
     raw = np.fromfile(bin_path, dtype="<f4")
     if raw.size % 4:
@@ -53,9 +102,8 @@ def read_semantickitti_scan(bin_path: str | Path, label_path: str | Path) -> Lab
         raise ValueError(
             f"{label_path}: {label_words.size} labels for {points.shape[0]} points in {bin_path}"
         )
-    if not np.all(np.isfinite(points)):
-        raise ValueError(f"{bin_path}: non-finite point coordinates")
-    labels = semantickitti_class_ids(label_words & 0xFFFF)
+    check_point_range(points, str(bin_path))
+    labels = checked_class_ids(label_words & 0xFFFF, str(label_path))
     return LabelledScan(points, labels, (label_words >> 16).astype(np.int32))
 
 
