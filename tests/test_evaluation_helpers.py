@@ -18,7 +18,7 @@ from jaxloc.m2loc import (
     summarize_localization,
 )
 from jaxloc.m2loc._config import PUBLISHED_SETTINGS
-from jaxloc.m2loc._drive import STATUS_NAMES, DriveStep, ScanInstances
+from jaxloc.m2loc._drive import DriveStep, ScanInstances
 from jaxloc.m2loc._evaluation import (
     SUCCESS_RRE_DEG,
     SUCCESS_RTE_M,
@@ -102,36 +102,6 @@ def test_localization_success_is_valid_and_within_both_thresholds():
     assert row["P"] == pytest.approx(100.0 * np.mean(expected))
 
 
-def _old_scan_record(step, T_gt, track: bool) -> dict:
-    """The record as ``localize-lidar`` built it itself (less the scan's name and time)."""
-    scan, result = step.instances, step.result
-    counts = {int(c): int(np.sum(scan.labels == c)) for c in np.unique(scan.labels)}
-    record = {
-        "instances": int(len(scan.points)),
-        "instances_per_class": {str(c): n for c, n in counts.items()},
-        "valid": bool(result.valid),
-        "ambiguous": bool(result.ambiguous),
-        "clique_size": int(result.clique_size),
-        "scales_used": int(result.scales_used),
-        "T_map_scan": np.round(result.pose, 6).tolist(),
-        "load_ms": round(step.load_ms, 3),
-        "descriptor_ms": round(result.descriptor_time_ms, 3),
-        "match_ms": round(result.match_time_ms, 3),
-        "compile_s": round(step.compile_s, 3),
-    }
-    if T_gt is not None:
-        rte, rre = localization_errors(result.pose, T_gt)
-        record["rte_m"], record["rre_deg"] = float(rte), float(rre)
-    if track:
-        record["track"] = STATUS_NAMES[step.status]
-    if step.fused is not None:
-        record["fused_scans"] = int(step.fused.members.shape[1])
-        record["fused_instances"] = len(step.fused.points)
-        if not track:
-            record["small_clique"] = step.small_clique
-    return record
-
-
 @pytest.mark.parametrize("fused", [False, True])
 @pytest.mark.parametrize("track", [False, True])
 def test_step_record_is_the_command_lines_record(fused, track):
@@ -147,8 +117,30 @@ def test_step_record_is_the_command_lines_record(fused, track):
     )
     window = FusedScans(rng.normal(size=(12, 3)), np.full(12, 15), np.ones(12), np.zeros((12, 3)))
     step = DriveStep(result, 1, instances, window if fused else None, True, 0.4567, 2.34567)
-    for T_gt in (None, truth):
-        assert step_record(step, T_gt, track) == _old_scan_record(step, T_gt, track)
+    expected = {
+        "instances": 9,
+        "instances_per_class": {"15": 5, "17": 2, "18": 2},
+        "valid": True,
+        "ambiguous": False,
+        "clique_size": 7,
+        "scales_used": 2,
+        "T_map_scan": np.round(pose, 6).tolist(),
+        "load_ms": 0.457,
+        "descriptor_ms": 1.235,
+        "match_ms": 7.891,
+        "compile_s": 2.346,
+    }
+    if track:
+        expected["track"] = "relocalized"  # status 1
+    if fused:
+        expected.update(fused_scans=3, fused_instances=12)
+        if not track:
+            expected["small_clique"] = True
+    assert step_record(step, None, track) == expected
+    rte, rre = localization_errors(pose, truth)
+    with_truth = step_record(step, truth, track)
+    assert with_truth == {**expected, "rte_m": float(rte), "rre_deg": float(rre)}
+    assert rte > 0 and rre > 0
 
 
 def test_published_settings_make_a_saved_robust_config_the_papers():
