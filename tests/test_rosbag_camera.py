@@ -1,6 +1,6 @@
 """Camera recordings from ROS bags: a synthetic episode written as a ScanNet export folder and as
 bags (ROS 1, ROS 2 sqlite3, ROS 2 MCAP, a bare .mcap; written with rosbags' own writers,
-tests/_bag_fixtures.py) opens to the same query (images, depth, intrinsics, ego-motion, ground
+tests/_rosbag_fixtures.py) opens to the same query (images, depth, intrinsics, ego-motion, ground
 truth, patch embeddings); bad bags are one line naming the bag and the topic."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import shutil
 import numpy as np
 import pytest
 import trimesh
-from _bag_fixtures import KINDS, Messages, write_bag
+from _rosbag_fixtures import KINDS, Messages, write_bag
 from PIL import Image
 
 from jaxloc.io import ClassEmbeddings
