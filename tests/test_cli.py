@@ -333,6 +333,36 @@ def test_demo_tiny(tmp_path, capsys):
     assert figure.read_bytes().startswith(b"\x89PNG")
 
 
+def test_demo_rerun_writes_a_recording_rerun_loads(tmp_path, capsys):
+    """``demo --rerun F.rrd`` (the sizes of the tiny demo above, so its compilations) writes the
+    run as a recording Rerun's own reader loads: the map, each round's particles, the camera."""
+    rerun_chunk = pytest.importorskip("rerun.chunk")
+    rrd = tmp_path / "demo.rrd"
+    argv = ["demo", *TINY_SG2LOC, "--strides", "8,8", "--out", tmp_path / "d.png", "--rerun", rrd]
+    code, out, err = run(argv, capsys)
+    assert code == 0, err
+    assert f"rerun: {rrd}" in out
+    entities = {chunk.entity_path for chunk in rerun_chunk.RrdReader(rrd).stream().to_chunks()}
+    for entity in ("/world/map/objects/0", "/world/particles/round_1", "/world/camera/image/rgb"):
+        assert entity in entities, (entity, sorted(entities))
+
+
+def test_rerun_without_rerun_sdk_is_one_line_before_any_work(tmp_path, capsys, monkeypatch):
+    """Without rerun-sdk, ``--rerun`` is one line and exit status 2 while the options are
+    checked: before the demo builds or compiles anything, before localize-lidar and
+    localize-camera read their (here missing) inputs."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "rerun", None)  # `import rerun`: ModuleNotFoundError
+    rrd = tmp_path / "x.rrd"
+    for argv in (["demo"], ["localize-lidar", "map", "scan"], ["localize-camera", "m.npz", "s"]):
+        code, out, err = run([*argv, "--rerun", rrd], capsys)
+        assert code == 2 and out == "" and len(err.strip().splitlines()) == 1, err
+        assert err.startswith(f"jaxloc {argv[0]}: error: --rerun {rrd}: writing a Rerun "
+                              "recording (.rrd) needs the rerun-sdk package")  # fmt: skip
+    assert not list(tmp_path.iterdir())
+
+
 def test_demo_rejects_bad_strides(capsys):
     for bad in ("20,0", "20,x", ""):
         assert main(["demo", "--strides", bad]) == 2

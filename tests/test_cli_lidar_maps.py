@@ -18,9 +18,9 @@ import pytest
 from _helipr_fixtures import FIRST_STAMP, PERIOD_NS, ns_to_seconds, tum_line, write_helipr_sequence
 
 from jaxloc.cli import main
-from jaxloc.cli._lidar import _format_record
 from jaxloc.io.lidar_sequence import open_lidar_sequence
 from jaxloc.m2loc._accumulation import WINDOW_MIN_CLIQUE, WINDOW_MIN_INSTANCES
+from jaxloc.m2loc._evaluation import format_record as _format_record
 from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
 from jaxloc.synthetic.outdoor import make_outdoor_world
 

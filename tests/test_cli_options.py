@@ -255,6 +255,18 @@ def test_fitting_strides_refuses_strides_too_coarse_for_the_image(capsys):
         (["localize-lidar", "m", "s", "--accumulate", "3", "--accumulate-max", "2"], "(3), got 2"),
         (["localize-lidar", "m", "s", "--window-instances", "0"], "--window-instances is only"),
         (["localize-lidar", "m", "s", "--save-map", "x.txt"], "--save-map x.txt: the file name"),
+        (
+            ["localize-lidar", "m", "s", "--poses-out", "x.tum", "--pose-format", "mcap"],
+            "--poses-out/--pose-format: x.tum: format 'mcap' does not fit the name",
+        ),
+        (
+            ["localize-lidar", "m", "s", "--poses-out", "x.mcap", "--pose-format", "kitti"],
+            "x.mcap: format 'kitti' does not fit the name",
+        ),
+        (
+            ["localize-lidar", "m", "s", "--poses-out", "x.mcap", "--pose-format", "rosbag2"],
+            "x.mcap: format 'rosbag2' does not fit the name",
+        ),
     ],
 )
 def test_options_that_do_not_fit_each_other_are_one_line_before_any_work(argv, fragment, capsys):

@@ -1,19 +1,21 @@
 """Camera recordings from ROS bags: a synthetic episode written as a ScanNet export folder and as
 bags (ROS 1, ROS 2 sqlite3, ROS 2 MCAP, a bare .mcap; written with rosbags' own writers,
-tests/_bag_fixtures.py) opens to the same query (images, depth, intrinsics, ego-motion, ground
+tests/_rosbag_fixtures.py) opens to the same query (images, depth, intrinsics, ego-motion, ground
 truth, patch embeddings); bad bags are one line naming the bag and the topic."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import shutil
 
 import numpy as np
 import pytest
 import trimesh
-from _bag_fixtures import KINDS, Messages, write_bag
+from _rosbag_fixtures import KINDS, Messages, write_bag
 from PIL import Image
 
+from jaxloc.cli import main
 from jaxloc.io import ClassEmbeddings
 from jaxloc.io.camera_recording import open_camera_recording
 from jaxloc.io.camera_sequence import read_camera_sequence
@@ -47,6 +49,7 @@ def episode_folder(tmp_path_factory):
     episode = indoor.make_episode(5, FRAMES, config)
     root = tmp_path_factory.mktemp("bags")
     folder = write_scannet_export(episode, root / "export")
+    save_scene(episode.scene, root / "map.npz")  # the map localize-camera reads
     poses = np.stack([np.loadtxt(folder / "pose" / f"{t}.txt") for t in range(FRAMES)])
     labels = np.random.default_rng(0).choice([0, *CLASS_IDS], size=(FRAMES, 48, 64))
     return root, folder, poses, labels.astype(np.uint16)
@@ -344,3 +347,29 @@ def test_the_opener_reads_label_topics_through_the_maps_classes(episode_folder, 
         open_camera_recording(bag, labels_dir=tmp_path)
     with pytest.raises(ValueError, match=r"export: image_topic, gt apply to ROS bags only"):
         open_camera_recording(folder, image_topic="/x", gt=tmp_path / "gt.tum")
+
+
+def test_localize_camera_on_a_bag(episode_folder, tmp_path, capsys):
+    """``jaxloc localize-camera`` on a bag (``--format rosbag``, its topics and a TUM ground truth
+    named on the command line): every frame localized and judged, the run written with
+    ``--rerun`` as a recording Rerun's reader loads; bag options for a folder are one line."""
+    root, folder, poses, _ = episode_folder
+    bag = write_bag(tmp_path / "rec", "mcap", camera_messages(folder, poses, "mcap"))
+    write_tum(tmp_path / "gt.tum", poses, np.asarray(STAMPS, np.int64))
+    options = ["--embeddings", _embeddings_by_stamp(folder, tmp_path / "e"), "--width", "64",
+               "--particles", "64", "--strides", "6", "--no-progress", "--json"]  # fmt: skip
+    argv = ["localize-camera", root / "map.npz", bag, "--format", "rosbag", "--image-topic",
+            COLOR + "/compressed", "--depth-topic", DEPTH, "--odometry-topic", "/odom", "--gt",
+            tmp_path / "gt.tum", "--rerun", tmp_path / "run.rrd", *options]  # fmt: skip
+    assert main([str(a) for a in argv]) == 0, capsys.readouterr().err
+    report = json.loads(capsys.readouterr().out)
+    assert report["format"] == "rosbag" and report["frames"] == list(range(FRAMES))
+    assert len(report["position_error_m"]) == FRAMES
+    assert report["rerun"] == str(tmp_path / "run.rrd")
+    rerun_chunk = pytest.importorskip("rerun.chunk")
+    chunks = rerun_chunk.RrdReader(tmp_path / "run.rrd").stream().to_chunks()
+    assert {"/world/camera/image/rgb", "/world/trajectory/gt"} <= {c.entity_path for c in chunks}
+    argv = ["localize-camera", root / "map.npz", folder, "--image-topic", "/x", *options]
+    assert main([str(a) for a in argv]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "\n" not in error and error.endswith("export: image_topic apply to ROS bags only"), error

@@ -10,6 +10,7 @@ the bag and the topic."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from pathlib import Path
 
@@ -21,6 +22,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from jaxloc.cli import main
+from jaxloc.io.lidar_map import save_triplet_map
 from jaxloc.io.lidar_recording import open_lidar_recording, write_lidar_poses
 from jaxloc.io.poses import format_ns_as_seconds
 from jaxloc.io.rosbag_poses import write_pose_bag
@@ -141,6 +144,53 @@ def test_localize_drive_on_a_bag_gives_the_folder_s_flags_and_poses(
         np.testing.assert_allclose([p.x, p.y, p.z], pose[:3, 3], atol=1e-12)
         rotation = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
         np.testing.assert_allclose(rotation, pose[:3, :3], atol=1e-6)  # float32 estimates
+
+
+def test_localize_lidar_on_a_bag_writes_its_poses_as_a_bag(triplet_map, scans, tmp_path, capsys):
+    """``jaxloc localize-lidar`` on an MCAP bag of two cloud topics (``--topic`` names one), its
+    windows fused through the bag's own odometry: the library's flags and poses, written with
+    ``--poses-out x.mcap`` as a PoseStamped per valid scan and with ``--rerun`` as a recording
+    Rerun's reader loads; without ``--topic``, one line."""
+    from rosbags.highlevel import AnyReader
+
+    bag = tmp_path / "drive.mcap"
+    with BagWriter(bag, "bare-mcap") as writer:
+        for stamp, points, raw, pose in zip(
+            STAMPS, scans.points, scans.raw_labels, scans.T_map_scan, strict=True
+        ):
+            writer.cloud("/points", stamp, packed_records(points, raw))
+            writer.cloud("/points_raw", stamp, packed_records(points, raw))
+            writer.odometry("/odom", stamp, pose)
+    save_triplet_map(triplet_map, tmp_path / "map.npz")
+    out = tmp_path / "est.mcap"
+    argv = ["localize-lidar", tmp_path / "map.npz", bag, "--accumulate", "3", "--json",
+            "--no-progress", "--poses-out", out]  # fmt: skip
+    assert main([str(a) for a in argv]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "\n" not in error and "2 PointCloud2 topics" in error and "topic=" in error, error
+    rrd = tmp_path / "drive.rrd"
+    assert main([str(a) for a in [*argv, "--topic", "/points", "--rerun", rrd]]) == 0
+    report = json.loads(capsys.readouterr().out)
+    recording = open_lidar_recording(bag, topic="/points")
+    expected = localize_drive(triplet_map, recording, odometry=recording.odometry, accumulate=3)
+    assert [r["valid"] for r in report["scans"]] == expected.valid.tolist()
+    assert expected.valid.sum() >= 4 and report["scans"][0]["scan"] == f"{bag}:/points[0]"
+    with AnyReader([out]) as reader:
+        found = [
+            (connection.msgtype, time, reader.deserialize(raw, connection.msgtype))
+            for connection, time, raw in reader.messages()
+            if connection.topic == "/jaxloc/pose"
+        ]
+    assert [t for _, t, _ in found] == [
+        s for s, ok in zip(STAMPS, expected.valid, strict=True) if ok
+    ]
+    for (msgtype, _, message), pose in zip(found, expected.poses[expected.valid], strict=True):
+        assert msgtype == "geometry_msgs/msg/PoseStamped" and message.header.frame_id == "map"
+        p = message.pose.position
+        np.testing.assert_allclose([p.x, p.y, p.z], pose[:3, 3], atol=1e-9)
+    rerun_chunk = pytest.importorskip("rerun.chunk")
+    entities = {chunk.entity_path for chunk in rerun_chunk.RrdReader(rrd).stream().to_chunks()}
+    assert {"/world/map/instances", "/world/trajectory/estimate"} <= entities, sorted(entities)
 
 
 def test_odometry_from_tf_and_from_another_frame_through_tf_static(scans, tmp_path):

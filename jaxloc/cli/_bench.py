@@ -84,10 +84,9 @@ def check_bench_raycast(args: argparse.Namespace) -> None:
     from jaxloc.camera import stride_grid_shape
 
     if min(stride_grid_shape(args.stride, args.width, args.height)) < 1:
-        raise InputError(
-            f"--stride {args.stride} casts no ray on a {args.width} x {args.height} image; use "
-            f"--stride {2 * min(args.width, args.height) - 1} or less"
-        )
+        largest = 2 * min(args.width, args.height) - 1
+        raise InputError(f"--stride {args.stride} casts no ray on a {args.width} x {args.height} "
+                         f"image; use --stride {largest} or less")  # fmt: skip
 
 
 def check_bench_filter(args: argparse.Namespace) -> None:
@@ -127,19 +126,15 @@ def run_bench_raycast(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     compiled = jax.jit(render_batch).lower(scene, poses, camera, grid).compile()
     compile_s = time.perf_counter() - start
-    wall, cpu = _timed(
-        lambda: jax.block_until_ready(compiled(scene, poses, camera, grid)), args.repeats
-    )
-    rays = n * grid.uv.shape[0]
-    print(
-        f"raycast (render_batch): {scene.num_objects} objects, {scene.num_triangles} triangles; "
-        f"{n} poses x {grid.uv.shape[0]} rays ({args.width}x{args.height}, "
-        f"stride {args.stride}) = {rays} rays"
-    )
-    print(f"  engine: {describe_engine()}")
-    print(f"  compile {compile_s:.2f} s; best of {args.repeats}: {wall * 1e3:.1f} ms")
-    per_cpu_s = rays / max(cpu, 1e-9) / 1e6
-    print(f"  {rays / wall / 1e6:.3f} M rays/s (wall), {per_cpu_s:.3f} M rays per CPU-second")
+    wall, cpu = _timed(lambda: jax.block_until_ready(compiled(scene, poses, camera, grid)),
+                       args.repeats)  # fmt: skip
+    rays, per_cpu_s = n * grid.uv.shape[0], n * grid.uv.shape[0] / max(cpu, 1e-9) / 1e6
+    print(f"raycast (render_batch): {scene.num_objects} objects, {scene.num_triangles} triangles; "
+          f"{n} poses x {grid.uv.shape[0]} rays ({args.width}x{args.height}, stride "
+          f"{args.stride}) = {rays} rays\n  engine: {describe_engine()}\n  compile "
+          f"{compile_s:.2f} s; best of {args.repeats}: {wall * 1e3:.1f} ms\n  "
+          f"{rays / wall / 1e6:.3f} M rays/s (wall), {per_cpu_s:.3f} M rays per "
+          "CPU-second")  # fmt: skip
     return 0
 
 
@@ -166,16 +161,11 @@ def run_bench_filter(args: argparse.Namespace) -> int:
     first_s = time.perf_counter() - start
     wall, cpu = _timed(lambda: run(args.seed + 1), 1)
     rays = stride_grid(sequence.camera, args.stride).uv.shape[0]
-    print(
-        f"filter (SG2Loc, one round): {args.particles} particles x {rays} rays "
-        f"({args.width}x{args.height}, stride {args.stride}), {scene.num_objects} objects, "
-        f"{scene.num_triangles} triangles (episode built in {build_s:.1f} s)"
-    )
-    print(f"  compile {max(first_s - wall, 0.0):.2f} s")
-    print(
-        f"  {wall / args.frames:.4f} s/frame wall, {cpu / args.frames:.4f} s/frame CPU "
-        f"(mean over {args.frames} frames)"
-    )
+    print(f"filter (SG2Loc, one round): {args.particles} particles x {rays} rays "
+          f"({args.width}x{args.height}, stride {args.stride}), {scene.num_objects} objects, "
+          f"{scene.num_triangles} triangles (episode built in {build_s:.1f} s)\n  compile "
+          f"{max(first_s - wall, 0.0):.2f} s\n  {wall / args.frames:.4f} s/frame wall, "
+          f"{cpu / args.frames:.4f} s/frame CPU (mean over {args.frames} frames)")  # fmt: skip
     return 0
 
 
@@ -199,10 +189,8 @@ def run_bench_triplet(args: argparse.Namespace) -> int:
         name = f"synthetic {args.world} world ({args.blocks}x{args.blocks} blocks)"
     triplet_map = describe_map(points, labels, config, None if args.no_rsn else normals, name)
     rng = np.random.default_rng(args.seed + 1)
-    queries = [
-        make_query(points, labels, normals, rng, max_kept=args.max_kept)
-        for _ in range(args.queries)
-    ]
+    queries = [make_query(points, labels, normals, rng, max_kept=args.max_kept)
+               for _ in range(args.queries)]  # fmt: skip
     drive = localize_drive(triplet_map, queries)  # each query alone, compile timed apart
     truth = np.stack([q.T_map_scan for q in queries])
     success = localization_success(drive.poses, truth, drive.valid)
@@ -210,14 +198,9 @@ def run_bench_triplet(args: argparse.Namespace) -> int:
     desc, match = np.median(times, axis=0)
     sizes = [len(q.points) for q in queries]
     scales = len(config.descriptor.scale_edges)
-    print(
-        f"triplet ({'TripletLoc' if args.tripletloc else f'M2Loc, {scales} scale(s)'}, "
-        f"k={config.top_k}): {name}, {len(points)} map instances; {args.queries} queries of "
-        f"{min(sizes)}-{max(sizes)} instances"
-    )
-    print(f"  compile {float(drive.compile_s.sum()):.2f} s")
-    print(
-        f"  descriptors {desc:.2f} ms/query, match + clique + pose {match:.2f} ms/query "
-        f"(medians); success {success.mean():.0%}"
-    )
+    print(f"triplet ({'TripletLoc' if args.tripletloc else f'M2Loc, {scales} scale(s)'}, "
+          f"k={config.top_k}): {name}, {len(points)} map instances; {args.queries} queries of "
+          f"{min(sizes)}-{max(sizes)} instances\n  compile {float(drive.compile_s.sum()):.2f} s"
+          f"\n  descriptors {desc:.2f} ms/query, match + clique + pose {match:.2f} ms/query "
+          f"(medians); success {success.mean():.0%}")  # fmt: skip
     return 0

@@ -10,6 +10,8 @@ import numpy as np
 
 from jaxloc.cli._errors import InputError, reading
 from jaxloc.cli._options import (
+    RERUN_HELP,
+    OptionTable,
     add_list,
     command,
     given,
@@ -29,6 +31,8 @@ MAP.npz is a map of `jaxloc build-scene-graph`. SEQ is one of (detected, or --fo
  3rscan          a 3RScan scan folder or its sequence/ (_info.txt, frame-NNNNNN.color.jpg,
                    .depth.pgm, .pose.txt); --rescan-json 3RScan.json (or --transform FILE)
                    puts a rescan's poses in its reference scan's frame
+ rosbag          a ROS 1 .bag, ROS 2 bag folder or .mcap: colour, depth, CameraInfo, odometry
+                   or /tf, label topics (each picked when it is the only one of its kind)
 Patch embeddings of frame N: embeddings/N.npy ((rows, cols, d), d the map's), or label images
 --labels DIR/N.png (class ids, 0 = unknown; --label-table maps raw ScanNet ids) made into
 embeddings with the map's class embeddings. --odometry (default odometry.txt beside the frames:
@@ -47,7 +51,22 @@ examples:
   jaxloc localize-camera <ref_id>.npz 3RScan/<rescan_id> --rescan-json 3RScan.json
   jaxloc localize-camera room.npz seq --heights 1.2,1.3,1.4 --particles 4000 --plot run.png
   jaxloc localize-camera room.npz seq --max-frames 10 --refine --online --strides 10 --json
+  jaxloc localize-camera office.npz office.mcap --label-topic /labels --gt gt.tum --rerun run.rrd
 """
+
+
+#: A bag SEQ's topics (open_camera_recording's keywords): flag, metavar, help.
+BAG_OPTIONS = OptionTable((
+    ("--image-topic", "TOPIC", "colour sensor_msgs/Image or CompressedImage"),
+    ("--depth-topic", "TOPIC", "depth sensor_msgs/Image (16UC1 mm, 32FC1 m)"),
+    ("--camera-info-topic", "TOPIC", "colour CameraInfo (default: camera_info beside the images)"),
+    ("--depth-info-topic", "TOPIC", "depth CameraInfo (default: camera_info beside the depth)"),
+    ("--odometry-topic", "TOPIC", "a pose topic, /tf or none (default: one Odometry, else /tf)"),
+    ("--odometry-frame", "FRAME", "the fixed frame of /tf odometry (default odom, else the root)"),
+    ("--label-topic", "TOPIC", "label images (class ids), made into patch embeddings"),
+    ("--gt-topic", "TOPIC", "ground truth: a nav_msgs/Odometry or PoseStamped topic"),
+    ("--gt", "FILE", "ground truth: a pose file (TUM lines interpolated to the frames)"),
+))  # fmt: skip
 
 
 def add_parser(commands) -> None:
@@ -55,10 +74,9 @@ def add_parser(commands) -> None:
     parser = command(commands, "localize-camera", DESCRIPTION, EPILOG)
     parser.add_argument("map", type=Path, metavar="MAP.npz", help="the map file")
     parser.add_argument("seq_dir", type=Path, metavar="SEQ", help="the recording (see above)")
-    add = parser.add_argument_group(
-        "the recording (defaults: open_camera_recording's)"
-    ).add_argument
-    add("--format", choices=("scannet-export", "sens", "3rscan"), help="its layout")
+    group = parser.add_argument_group("the recording (defaults: open_camera_recording's)")
+    add = group.add_argument
+    add("--format", choices=("scannet-export", "sens", "3rscan", "rosbag"), help="its layout")
     for name, metavar, text in (
         ("--embeddings", "DIR", "patch embeddings N.npy"),
         ("--labels", "DIR", "label images N.png"),
@@ -78,6 +96,7 @@ def add_parser(commands) -> None:
     add("--max-frames", type=positive_int, help="use at most this many frames")
     add("--no-depth", action="store_true", help="ignore depth/")
     add("--no-rgb", action="store_true", help="no colour score")
+    BAG_OPTIONS.add(parser, "a bag SEQ (defaults: the bag's)")
     add = parser.add_argument_group("filter settings (defaults: SG2LocConfig's)").add_argument
     add("--particles", type=positive_int, help="particle capacity")
     add_list(add, "--strides", positive_int, "20,8,4",
@@ -94,6 +113,7 @@ def add_parser(commands) -> None:
     add("--pose-format", choices=("tum", "kitti"), default="tum", help="--poses-out's format")
     add("--refine", action="store_true", help="refine the last frame with depth")
     add("--plot", type=Path, metavar="FILE", help="figure of particles (PNG)")
+    add("--rerun", type=Path, metavar="F.rrd", help=RERUN_HELP)
     add("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -132,13 +152,11 @@ def _load_recording(args: argparse.Namespace):
         labels_dir=args.labels, label_table=args.label_table, label_column=args.label_column,
         patch_shape=args.patches, rescan_json=args.rescan_json, scan_id=args.scan_id,
         transform=args.transform, odometry=args.odometry, step=args.step,
-        max_frames=args.max_frames,
+        max_frames=args.max_frames, **BAG_OPTIONS.values(args),
     )  # fmt: skip
     with reading():
-        return open_camera_recording(
-            args.seq_dir, map_file=args.map, use_depth=not args.no_depth, use_rgb=not args.no_rgb,
-            **options,
-        )  # fmt: skip
+        return open_camera_recording(args.seq_dir, map_file=args.map, use_depth=not args.no_depth,
+                                     use_rgb=not args.no_rgb, **options)  # fmt: skip
 
 
 def _print_report(report: dict) -> None:
@@ -163,15 +181,16 @@ def _print_report(report: dict) -> None:
             line += f"{refined['rotation_error_deg']:.2f} deg"
         matrix = np.array2string(np.asarray(refined["T_world_cam"]), precision=4)
         print(f"{line}\nT_world_cam =\n{matrix}")
-    if "figure" in report:
-        print(f"figure: {report['figure']}")
+    for key in ("figure", "rerun"):
+        if key in report:
+            print(f"{key}: {report[key]}")
 
 
 def run_localize_camera(args: argparse.Namespace) -> int:
     import jax
     from tqdm.auto import tqdm
 
-    from jaxloc.io import write_camera_poses
+    from jaxloc.io import write_camera_poses, write_rerun
     from jaxloc.io.scene_map import load_scene
     from jaxloc.metrics import summarize_sequence
     from jaxloc.sg2loc import check_ssim_strides, localize, online, warm_up
@@ -192,19 +211,16 @@ def run_localize_camera(args: argparse.Namespace) -> int:
         with reading():
             check_ssim_strides(strides, width, height, "--strides", "a larger --width, or --no-rgb")
     if not args.json:
-        print(
-            f"map: {scene.num_objects} objects, {scene.num_triangles} triangles; sequence: "
-            f"{seq.num_frames} frames of a {folder.format} recording ({len(folder.skipped)} "
-            f"skipped without a pose), {seq.camera.width}x{seq.camera.height} px, "
-            f"{seq.patch_shape[0]}x{seq.patch_shape[1]} patches, depth "
-            f"{'yes' if seq.depth is not None else 'no'}"
-        )
+        print(f"map: {scene.num_objects} objects, {scene.num_triangles} triangles; sequence: "
+              f"{seq.num_frames} frames of a {folder.format} recording ({len(folder.skipped)} "
+              f"skipped without a pose), {seq.camera.width}x{seq.camera.height} px, "
+              f"{seq.patch_shape[0]}x{seq.patch_shape[1]} patches, depth "
+              f"{'yes' if seq.depth is not None else 'no'}")  # fmt: skip
     key, progress = jax.random.key(args.seed), not args.no_progress
     if args.online:
         with tqdm(total=seq.num_frames, unit="frame", disable=not progress) as bar:
-            result = online.filter_sequence(
-                key, scene, seq, config, progress=lambda t: bar.update()
-            )
+            result = online.filter_sequence(key, scene, seq, config,
+                                            progress=lambda t: bar.update())  # fmt: skip
     else:  # the rounds compile side by side (warm_up's threads); localize waits for them
         warm_up(key, scene, seq, config, progress=progress)
         result = localize(key, scene, seq, config, progress=progress)
@@ -224,6 +240,8 @@ def run_localize_camera(args: argparse.Namespace) -> int:
         report["poses_out"] = str(args.poses_out)
     if args.plot is not None:
         report["figure"] = str(plot_rounds(result, folder.poses_gt, args.plot, scene=scene))
+    if args.rerun is not None:
+        report["rerun"] = str(write_rerun(args.rerun, scene, result, folder, folder.poses_gt))
     if args.json:
         print(json.dumps(report))
     else:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxloc.cli._errors import reading
-from jaxloc.cli._options import add_list, command, given, positive_int, seed
+from jaxloc.cli._options import RERUN_HELP, add_list, command, given, positive_int, seed
 
 _DESCRIPTION = """\
 Localize a camera in an embedded synthetic room (SG2Loc, no downloads).
@@ -24,6 +24,7 @@ examples:
   jaxloc demo --seed 3 --frames 10 --out demo.png
   jaxloc demo --width 160 --height 120   # strides lowered to fit: 18,8,4
   jaxloc demo --strides 10 6 4           # or --strides 10,6,4
+  jaxloc demo --rerun demo.rrd           # then: rerun demo.rrd (pip install "jaxloc[viz]")
 """
 
 
@@ -40,6 +41,7 @@ def add_parser(commands) -> None:
              "round, each casting at least SSIM's 7 x 7 rays (default SG2LocConfig.strides, each "
              "lowered to the largest that fits the image)", metavar="S")  # fmt: skip
     add("--out", type=Path, default=Path("jaxloc_demo.png"), help="figure (PNG)")
+    add("--rerun", type=Path, metavar="F.rrd", help=RERUN_HELP)
 
 
 def demo_episode_config(args: argparse.Namespace):
@@ -72,6 +74,7 @@ def run_demo(args: argparse.Namespace) -> int:
     import jax
 
     from jaxloc.camera import stride_grid
+    from jaxloc.io import write_rerun
     from jaxloc.metrics import summarize_sequence
     from jaxloc.sg2loc import (
         FrameSequence,
@@ -104,11 +107,10 @@ def run_demo(args: argparse.Namespace) -> int:
     warm_up(key, scene, frame_shapes, config, progress=True)
     del frame_shapes  # 50 MB of zeros at 960 x 540
     episode = indoor.episode_in_room(room, room, args.seed, args.frames, episode_config)
-    print(
-        f"room {episode.room.size[0]:.1f} x {episode.room.size[1]:.1f} m: "
-        f"{scene.num_objects} objects, {scene.num_triangles} triangles, "
-        f"map {scene.storage_mb():.2f} MB ({time.perf_counter() - start:.1f} s to build)"
-    )
+    print(f"room {episode.room.size[0]:.1f} x {episode.room.size[1]:.1f} m: "
+          f"{scene.num_objects} objects, {scene.num_triangles} triangles, map "
+          f"{scene.storage_mb():.2f} MB ({time.perf_counter() - start:.1f} s to "
+          "build)")  # fmt: skip
     camera = episode.sequence.camera
     grid = stride_grid(camera, min(10, strides[0]), *episode.sequence.patch_shape)
     num_views = min(3, args.frames)
@@ -128,9 +130,10 @@ def run_demo(args: argparse.Namespace) -> int:
         verdict = "localized" if ok else "not localized"
         print(f"frame {t}: {verdict}, position error {p:.3f} m, rotation error {r:.2f} deg")
     summary = errors["last_frame"]
-    print(
-        f"last frame: {summary['median_pos_m']:.3f} m, {summary['median_rot_deg']:.2f} deg; "
-        f"total {time.perf_counter() - start:.0f} s"
-    )
+    print(f"last frame: {summary['median_pos_m']:.3f} m, {summary['median_rot_deg']:.2f} deg; "
+          f"total {time.perf_counter() - start:.0f} s")  # fmt: skip
     print(f"figure: {plot_rounds(result, episode.poses_gt, args.out, scene=scene)}")
+    if args.rerun is not None:
+        path = write_rerun(args.rerun, scene, result, episode.sequence, episode.poses_gt)
+        print(f"rerun: {path}")
     return 0

@@ -13,6 +13,7 @@ import numpy as np
 
 from jaxloc.cli._errors import InputError, note, reading
 from jaxloc.cli._lidar_scans import (
+    BAG_OPTIONS,
     POSES_OUT_HELP,
     add_drive_options,
     add_sequence_options,
@@ -20,7 +21,7 @@ from jaxloc.cli._lidar_scans import (
     drive_options,
     note_sequences,
 )
-from jaxloc.cli._options import command, given, positive_float, positive_int
+from jaxloc.cli._options import RERUN_HELP, command, given, positive_float, positive_int
 
 DESCRIPTION = """\
 One-shot global localization of LiDAR scans in an instance map (M2Loc / TripletLoc).
@@ -37,6 +38,8 @@ Each SCAN is one of:
   a folder       instances/15.txt, 17.txt, 18.txt in the map's own format
   SEQ_DIR        a labelled sequence build-lidar-map reads: every --every-th scan, its poses the
                  ground truth unless --gt is given
+  BAG            a ROS 1 .bag, ROS 2 bag folder or .mcap, alone: its labelled PointCloud2 clouds,
+                 its odometry (used unless --odometry is given) and --gt-topic's ground truth
 Per scan: T_map_scan (p_map = T_map_scan @ p_scan), valid or not, the clique size (--track: how
 it was localized: tracked, relocalized, lost, or pending confirmation) and the times.
 """
@@ -48,6 +51,7 @@ examples:
   jaxloc localize-lidar MAP scans/*.txt --gt poses.txt --json > result.json
   jaxloc localize-lidar MAP_DIR scans/*.bin --save-map map.npz   # describe once, save
   jaxloc localize-lidar map.npz KAIST05 --every 10 --poses-out kaist05.tum
+  jaxloc localize-lidar map.npz drive.mcap --topic /points --accumulate 3 --poses-out est.mcap
 
 --gt FILE: the ground-truth T_map_scan, a pose a line: KITTI 3x4 (12 numbers), 4x4 (16) or TUM
 "t x y z qx qy qz qw" (t in seconds, or HeLiPR's integer nanoseconds), matched to timestamped
@@ -68,8 +72,10 @@ def add_parser(commands) -> None:
     add_drive_options(lidar)
     lidar.add_argument("--save-map", type=Path, metavar="FILE", help="save the described map")
     lidar.add_argument("--json", action="store_true", help="print one JSON document instead")
+    lidar.add_argument("--rerun", type=Path, metavar="F.rrd", help=RERUN_HELP)
     lidar.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_sequence_options(lidar)
+    BAG_OPTIONS.add(lidar, "a bag SCAN (defaults: the bag's)")
     add_triplet_options(lidar)
 
 
@@ -151,10 +157,8 @@ def open_map(path: Path, args: argparse.Namespace, recording=None):
 
     start = time.perf_counter()
     if path.is_file() and (args.scales is not None or args.tripletloc):
-        raise InputError(
-            f"{path}: a saved map keeps the descriptors it was described with; drop "
-            "--scales / --tripletloc (or describe the map folder again)"
-        )
+        raise InputError(f"{path}: a saved map keeps the descriptors it was described with; drop "
+                         "--scales / --tripletloc (or describe the map folder again)")  # fmt: skip
     with reading(), notes_of_small_maps(args.command, str(path)):
         if path.is_file():
             triplet_map = open_triplet_map(path, replace=_matching_options(args))
@@ -178,62 +182,30 @@ def check_localize_lidar(args: argparse.Namespace) -> None:
     drive_options(args)
 
 
-def _format_record(record: dict) -> str:
-    """The text of a scan's record (:func:`jaxloc.m2loc._evaluation.step_record`)."""
-    from jaxloc.m2loc._accumulation import WINDOW_MIN_CLIQUE
-
-    why = ""  # why a pose that passed the clique and verification tests was refused
-    if record["ambiguous"]:
-        why = " (ambiguous: another place fits as well)"
-    elif record.get("small_clique"):
-        why = f" (a window's pose needs a clique of {WINDOW_MIN_CLIQUE})"
-    classes = ", ".join(f"{n} x {c}" for c, n in record["instances_per_class"].items())
-    how = f"clique {record['clique_size']}, scales used {record['scales_used']}"
-    timing = (
-        f"  time: load {record['load_ms']:.1f} ms, descriptors {record['descriptor_ms']:.1f} ms, "
-        f"match + clique + pose {record['match_ms']:.1f} ms"
-    )
-    if "track" in record:
-        how = f"{record['track']}, {record['clique_size']} local associations"
-        timing = f"  time: load {record['load_ms']:.1f} ms, step {record['match_ms']:.1f} ms"
-    if record["compile_s"]:
-        timing += f" (first scan of this size: +{record['compile_s']:.1f} s compile or load)"
-    lines = [
-        f"{record['scan']}: {record['instances']} instances ({classes or 'none'}); "
-        f"{'valid' if record['valid'] else 'NOT valid'}{why}, {how}",
-        "  T_map_scan =",
-        *("    " + " ".join(f"{v:12.4f}" for v in row) for row in record["T_map_scan"]),
-        timing,
-    ]
-    if "rte_m" in record:
-        lines.append(f"  RTE {record['rte_m']:.3f} m, RRE {record['rre_deg']:.3f} deg")
-    return "\n".join(lines)
-
-
 def run_localize_lidar(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
-    from jaxloc.io import open_lidar_recording, save_triplet_map, write_lidar_poses
+    from jaxloc import io
     from jaxloc.m2loc import _evaluation as evaluation
     from jaxloc.m2loc import localize_drive
 
     accumulate, drive_config = drive_options(args)  # checked by check_localize_lidar
     with reading():
-        recording = open_lidar_recording(
-            args.scans, layout=args.format, sensor=args.sensor, every=args.every, gt=args.gt
-        )
+        recording = io.open_lidar_recording(
+            args.scans, layout=args.format, sensor=args.sensor, every=args.every, gt=args.gt,
+            **BAG_OPTIONS.values(args),
+        )  # fmt: skip
         drive = recording if args.odometry is None else recording.with_poses(args.odometry)
+    odometry = given(odometry=recording.odometry if args.odometry is None else None)
     note_sequences(args, recording.sequences)
     triplet_map, build_s = open_map(args.map, args, recording)
     if args.save_map is not None:
-        save_triplet_map(triplet_map, args.save_map)
+        io.save_triplet_map(triplet_map, args.save_map)
     num_vertices = int(triplet_map.points.shape[0])
     say = (lambda _: None) if args.json else print
-    say(
-        f"map {args.map}: {num_vertices} instances, "
+    say(f"map {args.map}: {num_vertices} instances, "
         f"{'with' if triplet_map.has_rsn else 'without'} road normals, "
-        f"{'loaded' if args.map.is_file() else 'described'} in {build_s:.1f} s"
-    )
+        f"{'loaded' if args.map.is_file() else 'described'} in {build_s:.1f} s")  # fmt: skip
     records = []
     bar = tqdm(total=len(recording), unit="scan", disable=len(recording) < 2 or args.no_progress)
 
@@ -246,24 +218,28 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
         })  # fmt: skip
         bar.update()
         if not args.json:
-            tqdm.write(_format_record(records[-1]))
+            tqdm.write(evaluation.format_record(records[-1]))
 
     with reading(), bar:
         result = localize_drive(
             triplet_map, drive, accumulate=accumulate, track=args.track, config=drive_config,
-            progress=progress,
+            progress=progress, **odometry,
         )  # fmt: skip
     if args.poses_out is not None:
         out = (args.poses_out, recording, result.poses, result.valid, args.pose_format)
-        if left_out := write_lidar_poses(*out):
+        if left_out := io.write_lidar_poses(*out):
             note(args.command, f"{args.poses_out}: {left_out} scan(s) that did not localize left "
-                 "out (TUM)")  # fmt: skip
+                 "out")  # fmt: skip
+    if args.rerun is not None:
+        seconds = None if recording.timestamps is None else recording.timestamps / 1e9
+        io.write_drive_rerun(args.rerun, triplet_map, result, recording.poses,
+                             has_gt=recording.has_pose, timestamps=seconds)  # fmt: skip
+        say(f"rerun: {args.rerun}")
     summary = {"map": str(args.map), "map_instances": num_vertices, "map_build_s": build_s}
     judged = np.asarray(recording.has_pose, bool)
     if judged.any():
-        success = evaluation.localization_success(
-            result.poses[judged], recording.poses[judged], result.valid[judged]
-        )
+        success = evaluation.localization_success(result.poses[judged], recording.poses[judged],
+                                                  result.valid[judged])  # fmt: skip
         summary["success_rate"] = float(np.mean(success))
         rte, rre = evaluation.SUCCESS_RTE_M, evaluation.SUCCESS_RRE_DEG
         say(f"success (valid, RTE < {rte} m, RRE < {rre} deg): {success.sum()}/{len(success)}")

@@ -1,6 +1,7 @@
-"""The recording options of the LiDAR commands (``--format``, ``--sensor``, ``--poses-out``, the
-drive's ``--accumulate`` family), their checks, and the notes of reading: the reading itself is
-:func:`jaxloc.io.open_lidar_recording` and :func:`jaxloc.io.lidar_sequence.open_lidar_sequence`."""
+"""The recording options of the LiDAR commands (``--format``, ``--sensor``, a bag's topics,
+``--poses-out``, the drive's ``--accumulate`` family), their checks, and the notes of reading:
+the reading itself is :func:`jaxloc.io.open_lidar_recording` and
+:func:`jaxloc.io.lidar_sequence.open_lidar_sequence`."""
 
 from __future__ import annotations
 
@@ -9,13 +10,24 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from jaxloc.cli._errors import InputError, note, reading
-from jaxloc.cli._options import count, given, positive_int
+from jaxloc.cli._options import OptionTable, count, given, positive_int
 
 POSES_OUT_HELP = """\
---poses-out FILE writes the estimated T_map_scan for evo: --pose-format tum, lines "t x y z qx qy
-qz qw" of the VALID scans (t the scan's timestamp in seconds, else its number), associated with
+--poses-out FILE writes the estimated T_map_scan: --pose-format tum, lines "t x y z qx qy qz qw"
+of the VALID scans for evo (t the scan's timestamp in seconds, else its number), associated with
 the reference by time; kitti, one 3x4 line per scan in order, a failed scan as the identity (then
-evo_ape counts its error as jaxloc's RTE does)."""
+evo_ape counts its error as jaxloc's RTE does); mcap (any FILE ending in .mcap), a
+geometry_msgs/PoseStamped per valid scan on /jaxloc/pose and a std_msgs/Bool verdict per scan on
+/jaxloc/valid, stamped as the scan, for Foxglove; rosbag2, the same as a new ROS 2 bag folder."""
+
+#: A bag SCAN's topics and fields (open_lidar_recording's keywords): flag, metavar, help.
+BAG_OPTIONS = OptionTable((
+    ("--topic", "TOPIC", "the labelled sensor_msgs/PointCloud2 topic (default: the only one)"),
+    ("--odometry-topic", "TOPIC", "a pose topic, /tf or none (default: one Odometry, else /tf)"),
+    ("--gt-topic", "TOPIC", "a pose topic of ground-truth T_map_scan (or --gt FILE)"),
+    ("--label-field", "FIELD", "the clouds' class field (default label)"),
+    ("--instance-field", "FIELD", "their instance field (default: a 32-bit label's high bits)"),
+))  # fmt: skip
 
 
 def add_sequence_options(parser: argparse.ArgumentParser) -> None:
@@ -36,11 +48,12 @@ def add_drive_options(parser: argparse.ArgumentParser) -> None:
     add("--accumulate-max", type=positive_int, metavar="M", help="with --accumulate K: the most "
         "scans a window grows to, M >= K (default 2K)")  # fmt: skip
     add("--odometry", type=Path, metavar="FILE", help="odometry for --accumulate and --track, any "
-        "format --gt takes (default: the sequence's own poses)")  # fmt: skip
+        "format --gt takes (default: a bag's odometry, else the poses)")  # fmt: skip
     add("--track", action="store_true", help="after a verified pose, localize the next scans near "
         "the odometry's prediction (milliseconds), globally when that fails")  # fmt: skip
     add("--poses-out", type=Path, metavar="FILE", help="estimated poses (see below)")
-    add("--pose-format", choices=("tum", "kitti"), default="tum", help="of --poses-out")
+    add("--pose-format", choices=("tum", "kitti", "mcap", "rosbag2"), default="tum",
+        help="of --poses-out")  # fmt: skip
 
 
 def note_sequences(args: argparse.Namespace, sequences: Sequence) -> None:
@@ -67,9 +80,15 @@ def open_sequence(path: Path, args: argparse.Namespace):
 
 
 def check_poses_out(args: argparse.Namespace) -> None:
-    """Before any work: ``--poses-out`` must not be a folder."""
-    if args.poses_out is not None and args.poses_out.is_dir():
+    """Before any work: ``--poses-out`` must not be a folder, ``--pose-format`` must fit it."""
+    from jaxloc.io.lidar_recording import pose_format_for
+
+    if args.poses_out is None:
+        return
+    if args.poses_out.is_dir():
         raise InputError(f"--poses-out {args.poses_out}: is a folder")
+    with reading("--poses-out/--pose-format"):
+        pose_format_for(args.poses_out, args.pose_format)
 
 
 def drive_options(args: argparse.Namespace):

@@ -34,14 +34,30 @@ class Formatter(argparse.RawDescriptionHelpFormatter):
 def command(commands, name: str, description: str, epilog: str | None = None) -> Parser:
     """The subcommand ``name`` of ``commands``; its help is the first line of ``description``."""
     help = description.split("\n")[0].rstrip(".")
-    return commands.add_parser(
-        name, help=help, description=description, epilog=epilog, formatter_class=Formatter
-    )
+    return commands.add_parser(name, help=help, description=description, epilog=epilog,
+                               formatter_class=Formatter)  # fmt: skip
 
 
 def given(**options) -> dict:
     """The ``options`` that are not None (the others keep the library's defaults)."""
     return {name: value for name, value in options.items() if value is not None}
+
+
+RERUN_HELP = "also write the run as a Rerun recording, for `rerun F.rrd` (needs rerun-sdk)"
+
+
+class OptionTable(tuple):
+    """Text options as ``(flag, metavar, help)`` rows: :meth:`add` puts them in a group of a
+    parser, :meth:`values` reads the given ones back as keywords (``--gt-topic``: ``gt_topic``)."""
+
+    def add(self, parser: argparse.ArgumentParser, title: str) -> None:
+        add = parser.add_argument_group(title).add_argument
+        for flag, metavar, text in self:
+            add(flag, metavar=metavar, help=text)
+
+    def values(self, args: argparse.Namespace) -> dict:
+        names = [flag[2:].replace("-", "_") for flag, *_ in self]
+        return given(**{name: getattr(args, name) for name in names})
 
 
 def _checker(name: str, convert: Callable, ok: Callable, what: str, plural: str = "") -> Callable:
@@ -117,11 +133,5 @@ def add_list(add: Callable, name: str, item: Callable, example: str, help: str, 
     """A list option ``name`` (``add``: a parser's ``add_argument``): ``item`` values separated by
     spaces or commas (``example``, e.g. ``20,8,4``), as a tuple (None when not given)."""
     spaced = example.replace(",", " ")
-    add(
-        name,
-        type=list_of(item, example),
-        nargs="+",
-        action=_Flatten,
-        help=f"{help}; '{spaced}' or '{example}'",
-        **kwargs,
-    )
+    add(name, type=list_of(item, example), nargs="+", action=_Flatten,
+        help=f"{help}; '{spaced}' or '{example}'", **kwargs)  # fmt: skip

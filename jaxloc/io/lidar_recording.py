@@ -308,8 +308,8 @@ def open_lidar_recording(
         odometry_topic: a bag's odometry topic (default: the only ``nav_msgs/Odometry``, else
             ``/tf``; ``"none"``: none): ``LidarRecording.odometry``.
         gt_topic: a bag's pose topic of ground truth ``T_map_scan``: the poses.
-        label_field, instance_field: a bag's label and instance fields
-            (:mod:`jaxloc.io.rosbag_lidar`).
+        label_field: a bag's label field (:mod:`jaxloc.io.rosbag_lidar`).
+        instance_field: a bag's instance field.
 
     Returns:
         A :class:`LidarRecording`.
@@ -384,9 +384,14 @@ def open_lidar_recording(
 POSE_FORMATS = ("tum", "kitti", "mcap", "rosbag2")
 
 
-def _pose_format(path: Path, format: str) -> str:
-    """The format of ``path``: an ``.mcap`` path is MCAP (``format`` "tum", the default, or
-    "mcap"), any other path the format given."""
+def pose_format_for(path: str | os.PathLike, format: str) -> str:
+    """The format :func:`write_lidar_poses` writes ``path`` in: an ``.mcap`` path is MCAP
+    (``format`` "tum", the default, or "mcap"), any other path the format given.
+
+    Raises:
+        ValueError: an unknown format, or one that does not fit the name (naming the path).
+    """
+    path = Path(path)
     if format not in POSE_FORMATS:
         raise ValueError(f"format must be one of {POSE_FORMATS}, got {format!r}")
     mcap = path.suffix == ".mcap"
@@ -433,7 +438,7 @@ def write_lidar_poses(
             the path's name, or an error of the writer (naming the path).
     """
     path = Path(path)
-    format = _pose_format(path, format)
+    format = pose_format_for(path, format)
     poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     valid = np.asarray(valid, bool)
     if len(poses) != len(recording) or valid.shape != (len(recording),):

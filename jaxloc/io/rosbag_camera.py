@@ -1,6 +1,6 @@
-"""Camera recordings from ROS bags, read with the ``rosbags`` library (``pip install
-"jaxloc[ros]"``): a ROS 1 ``.bag``, a ROS 2 bag folder (sqlite3 or MCAP storage) or a bare
-``.mcap`` / ``.db3`` file, opened as the same :class:`~jaxloc.io.CameraRecording` the folder
+"""Camera recordings from ROS bags, read with the ``rosbags`` library (no ROS installation
+needed): a ROS 1 ``.bag``, a ROS 2 bag folder (sqlite3 or MCAP storage) or a bare ``.mcap`` /
+``.db3`` file, opened as the same :class:`~jaxloc.io.CameraRecording` the folder
 layouts give (:func:`jaxloc.io.open_camera_recording` calls :func:`read_bag_camera_sequence`).
 
 Topics (each picked when it is the only one of its kind, else named by its keyword):
@@ -17,11 +17,13 @@ Topics (each picked when it is the only one of its kind, else named by its keywo
   beside the image topic (``/cam/color/image_raw`` -> ``/cam/color/camera_info``), else the only
   one. Depth of the colour images' size without one of its own uses the colour intrinsics.
 * ego-motion (``odometry_topic``, optional): ``nav_msgs/Odometry`` (the pose of its
-  ``child_frame_id``, carried to the camera's frame through ``/tf_static`` and ``/tf``), or the
-  ``/tf`` tree itself (``odometry_topic="/tf"``, the default without an Odometry topic): the
-  camera frame's pose in ``odometry_frame`` (default ``odom`` when the tree has it above the
-  camera, else the tree's root). Poses are interpolated to the frame stamps (linear in position,
-  slerp in rotation); a frame outside the poses' time span is an error.
+  ``child_frame_id``, carried to the camera's frame through ``/tf_static`` and ``/tf``) or
+  another pose topic, or the ``/tf`` tree itself (``odometry_topic="/tf"``, the default without
+  an Odometry topic): the camera frame's pose in ``odometry_frame`` (default ``odom`` when the
+  tree has it above the camera, else the tree's root); ``"none"``: none. Poses are interpolated
+  to the frame stamps (linear in position, slerp in rotation,
+  :func:`jaxloc.io._rosbag_poses.interpolate`); a frame outside the poses' time span, or
+  between two poses more than a second apart, is an error.
 * ground truth (``gt_topic`` or ``gt``, optional): a ``nav_msgs/Odometry`` topic (carried to the
   camera as above) or a ``geometry_msgs/PoseStamped`` topic (the camera's own pose), or a pose
   file (:func:`~jaxloc.io.read_pose_file`: TUM lines interpolated to the frame stamps; KITTI or
@@ -40,14 +42,16 @@ REP 103's ``*_optical_frame``), the odometry frame is gravity-aligned with z up;
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import numpy as np
 
-from jaxloc.io._bag_messages import (
-    BAG_SUFFIXES,
+from jaxloc.io._rosbag import first_message, no_topic, open_bag, pick_topic, seconds, topics_of
+from jaxloc.io._rosbag import is_bag as is_bag
+from jaxloc.io._rosbag_images import (
     CAMERA_INFO,
     COMPRESSED,
     DEPTH_ENCODINGS,
@@ -56,14 +60,19 @@ from jaxloc.io._bag_messages import (
     camera_intrinsics,
     color_image,
     depth_image,
-    first_message,
     image_encoding,
     label_image,
-    open_bag,
-    pick_topic,
-    topic_messages,
 )
-from jaxloc.io._bag_poses import TfTree, frame_poses, pose_file_track, track_poses
+from jaxloc.io._rosbag_poses import (
+    NO_ODOMETRY,
+    POSE_TYPES,
+    Poses,
+    interpolate,
+    pick_odometry,
+    pose_series,
+    read_bag_poses,
+    sensor_poses,
+)
 from jaxloc.io.camera_frames import Frame, FrameSource
 from jaxloc.io.camera_sequence import (
     CameraRecording,
@@ -75,26 +84,18 @@ from jaxloc.io.camera_sequence import (
     working_camera,
 )
 from jaxloc.io.label_images import patch_embeddings_from_labels
+from jaxloc.io.poses import read_pose_file
 from jaxloc.io.scene_map import ClassEmbeddings
 
 #: The ``format`` of a recording read from a bag.
 BAG_FORMAT = "rosbag"
 
 
-def is_bag(path: str | os.PathLike) -> bool:
-    """Whether ``path`` is a ROS bag: a ``.bag``, ``.mcap`` or ``.db3`` file, or a folder with a
-    ROS 2 ``metadata.yaml``."""
-    path = Path(path)
-    if path.is_dir():
-        return (path / "metadata.yaml").is_file()
-    return path.suffix.lower() in BAG_SUFFIXES
-
-
-def _info_topic(topics: Mapping, bag: str, image: str, named: str | None, option: str):
+def _info_topic(reader, path: Path, image: str, named: str | None, option: str):
     """The CameraInfo topic of ``image``: ``named``, the ``camera_info`` beside it, else None."""
-    infos = sorted(t for t, info in topics.items() if info.msgtype == CAMERA_INFO)
+    infos = topics_of(reader, (CAMERA_INFO,))
     if named is not None:
-        return pick_topic(topics, bag, infos, named, "sensor_msgs/CameraInfo", option)
+        return pick_topic(reader, path, infos, named, "sensor_msgs/CameraInfo", option)
     base = image.removesuffix("/compressed").rsplit("/", 1)[0]
     return f"{base}/camera_info" if f"{base}/camera_info" in infos else None
 
@@ -138,8 +139,9 @@ def read_bag_camera_sequence(
             topic, else the only CameraInfo topic).
         depth_info_topic: the depth intrinsics (default: ``camera_info`` beside the depth topic;
             none: the colour ones, for depth of the colour images' size).
-        odometry_topic: a ``nav_msgs/Odometry`` topic or ``"/tf"`` (default: the only Odometry
-            topic, else ``/tf`` where it moves the camera, else none).
+        odometry_topic: a ``nav_msgs/Odometry`` (or other pose) topic or ``"/tf"`` (default: the
+            only Odometry topic, else ``/tf`` where it moves the camera, else none; ``"none"``:
+            none).
         odometry_frame: the fixed frame of the ``/tf`` odometry (default ``odom``, else the
             root of the camera's tree).
         odometry: or a pose file of camera-to-odometry poses (TUM: interpolated to the frames).
@@ -164,7 +166,6 @@ def read_bag_camera_sequence(
         colour messages' indices, timestamps their stamps in seconds.
 
     Raises:
-        ModuleNotFoundError: without the rosbags package.
         FileNotFoundError: no such bag, pose file or embedding file.
         ValueError: one line naming the bag and the topic (or option): a damaged bag, no colour
             topic or several without ``image_topic``, an unknown encoding, stamps that do not
@@ -185,66 +186,62 @@ def read_bag_camera_sequence(
     for file, file_value, topic, topic_value in pairs:
         if file_value is not None and topic_value is not None:
             raise ValueError(f"give {file} or {topic}, not both")
-    bag = str(path)
-    with open_bag(path) as reader:
-        topics = reader.topics
-        image_topic, depth_topic = _image_topics(reader, bag, image_topic, depth_topic,
+    path = Path(path)
+    with contextlib.closing(open_bag(path)) as reader:
+        image_topic, depth_topic = _image_topics(reader, path, image_topic, depth_topic,
                                                  label_topic, use_depth)  # fmt: skip
-        color = BagTopic(reader, bag, image_topic)
+        color = BagTopic(reader, path, image_topic)
         numbers = tuple(range(len(color.stamps)))
         selected = numbers[::step][:max_frames]
         stamps = color.stamps[list(selected)]
-        first = color_image(color.first(), color.msgtype, f"{bag}: {image_topic} (message 0)")
+        first = color_image(color.first(), color.msgtype, f"{path}: {image_topic} (message 0)")
         native = first.size
-        K_color = _color_intrinsics(reader, bag, image_topic, camera_info_topic, native)
+        K_color = _color_intrinsics(reader, path, image_topic, camera_info_topic, native)
         depth, depth_of, K_depth, depth_size = None, {}, None, None
         if depth_topic is not None and use_depth:
-            depth = BagTopic(reader, bag, depth_topic)
+            depth = BagTopic(reader, path, depth_topic)
             depth_of = depth.matched(stamps, sync_tolerance, selected)
-            where = f"{bag}: {depth_topic} (message 0)"
+            where = f"{path}: {depth_topic} (message 0)"
             depth_size = depth_image(depth.first(), depth.msgtype, where).shape[::-1]
-            named = _info_topic(topics, bag, depth_topic, depth_info_topic, "depth_info_topic")
+            named = _info_topic(reader, path, depth_topic, depth_info_topic, "depth_info_topic")
             if named is not None:
-                K_depth, _ = camera_intrinsics(first_message(reader, bag, named), named)
+                K_depth, _ = camera_intrinsics(first_message(reader, path, named), named)
             elif depth_size != native:
                 raise ValueError(
-                    f"{bag}: {depth_topic} is {depth_size[0]}x{depth_size[1]}, {image_topic} "
+                    f"{path}: {depth_topic} is {depth_size[0]}x{depth_size[1]}, {image_topic} "
                     f"{native[0]}x{native[1]}, and no CameraInfo is beside {depth_topic} (name "
                     "one with depth_info_topic=)"
                 )
         camera_frame = str(color.first().header.frame_id).lstrip("/")
-        tree = TfTree(topics, bag, lambda t: (m for _, m in topic_messages(reader, bag, t)))
+        from_bag = NO_ODOMETRY if odometry is not None else odometry_topic  # a file instead
+        motion, truth = _bag_poses(
+            reader, path, (from_bag, odometry_frame, gt_topic), camera_frame, image_topic, stamps,
+            selected,
+        )  # fmt: skip
         if odometry is not None:
-            motion = pose_file_track(odometry, numbers, color.stamps, selected)
-        else:
-            motion = track_poses(tree, topics, camera_frame, odometry_topic, odometry_frame,
-                                 stamps, selected, image_topic)  # fmt: skip
-        truth = None
+            motion = _pose_file(odometry, numbers, color.stamps, selected)
         if gt is not None:
-            truth = pose_file_track(gt, numbers, color.stamps, selected)
-        elif gt_topic is not None:
-            truth = frame_poses(tree, topics, gt_topic, camera_frame, stamps, selected,
-                                image_topic, "gt_topic")  # fmt: skip
+            truth = _pose_file(gt, numbers, color.stamps, selected)
         if motion is None and truth is None:
             raise ValueError(
-                f"{bag}: no poses for the ego-motion: no nav_msgs/Odometry topic, no /tf from "
+                f"{path}: no poses for the ego-motion: no nav_msgs/Odometry topic, no /tf from "
                 f"{image_topic}'s frame {camera_frame!r}, and no ground truth (odometry_topic=, "
                 "odometry=, gt_topic= or gt=)"
             )
         embedding_of = _embeddings(
-            reader, bag, path, label_topic, embeddings_dir, embedding_dim, classes, label_map,
+            reader, path, label_topic, embeddings_dir, embedding_dim, classes, label_map,
             patch_shape, color, stamps, selected, sync_tolerance,
         )  # fmt: skip
 
         def load(number: int, with_depth: bool) -> Frame:
-            where = f"{bag}: {image_topic} (message {number})"
+            where = f"{path}: {image_topic} (message {number})"
             image = color_image(color.message(number), color.msgtype, where)
             if image.size != native:
                 raise ValueError(f"{where}: size {image.size} differs from message 0's {native}")
             pixels = None
             if with_depth and depth is not None:
                 index = depth_of[number]
-                where = f"{bag}: {depth_topic} (message {index})"
+                where = f"{path}: {depth_topic} (message {index})"
                 pixels = depth_image(depth.message(index), depth.msgtype, where)
                 if pixels.shape[::-1] != depth_size:
                     raise ValueError(f"{where}: size differs from message 0's")
@@ -252,10 +249,10 @@ def read_bag_camera_sequence(
             return Frame(number, color.stamps[number] / 1e9, image, pixels, pose)
 
         source = FrameSource(
-            BAG_FORMAT, Path(path), K_color, native, K_depth, depth_size, numbers,
-            truth is not None, load,
+            BAG_FORMAT, path, K_color, native, K_depth, depth_size, numbers, truth is not None,
+            load,
         )  # fmt: skip
-        odometry_poses = None if motion is None else Odometry(Path(path), motion, None, None, 0)
+        odometry_poses = None if motion is None else Odometry(path, motion, None, None, 0)
         return sequence_from_frames(
             source,
             selected,
@@ -268,78 +265,124 @@ def read_bag_camera_sequence(
         )
 
 
-def _image_topics(reader, bag: str, image_topic, depth_topic, label_topic, use_depth) -> tuple:
+def _frame_poses(at: Poses, stamps_ns, frames) -> dict[int, np.ndarray]:
+    """frame number -> (4, 4) pose; ValueError naming the poses' source and the first frame
+    they do not cover."""
+    if not at.covered.all():
+        k = int(np.flatnonzero(~at.covered)[0])
+        raise ValueError(
+            f"{at.where} covers {seconds(at.first)} s to {seconds(at.last)} s; frame "
+            f"{frames[k]} at {seconds(stamps_ns[k])} s is outside it (or in a gap of over 1 s)"
+        )
+    return dict(zip(frames, at.poses, strict=True))
+
+
+def _bag_poses(reader, path: Path, topics, camera_frame, image_topic, stamps, frames) -> tuple:
+    """(ego-motion, ground truth): frame number -> (4, 4) camera pose, or None, from the bag's
+    odometry (``odometry_topic``, ``odometry_frame``) and ground-truth topic (``gt_topic``)."""
+    odometry_topic, odometry_frame, gt_topic = topics
+    odometry = pick_odometry(reader, path, odometry_topic)
+    truth = gt_topic and pick_topic(reader, path, topics_of(reader, POSE_TYPES), gt_topic,
+                                    "pose", "gt_topic")  # fmt: skip
+    if odometry is None and truth is None:
+        return None, None
+    found = read_bag_poses(reader, path, [odometry, truth])
+    what = f"{image_topic}'s images"
+    motion = None
+    if odometry is not None:
+        required = odometry_topic is not None or odometry_frame is not None
+        at = sensor_poses(found, odometry, camera_frame, stamps, what, odometry_frame, required)
+        motion = None if at is None else _frame_poses(at, stamps, frames)
+    if truth is not None:
+        truth = _frame_poses(sensor_poses(found, truth, camera_frame, stamps, what), stamps, frames)
+    return motion, truth
+
+
+def _pose_file(path: str | os.PathLike, numbers, stamps_ns: np.ndarray, frames) -> dict:
+    """frame number -> (4, 4) pose from a pose file: TUM lines interpolated to the frames'
+    stamps (no gap too long), or KITTI / 4x4 lines, one per colour message (``numbers``) in
+    order."""
+    poses = read_pose_file(path)
+    if poses.timestamps is None:
+        if len(poses.poses) != len(numbers):
+            raise ValueError(
+                f"{path}: {len(poses.poses)} {poses.format} poses for the bag's {len(numbers)} "
+                "colour messages (one per message, in order)"
+            )
+        return {n: poses.poses[n] for n in frames}
+    series = pose_series(None, None, poses.timestamps, poses.poses, str(path))
+    at = stamps_ns[list(frames)]
+    tolerance = poses.match_tolerance_ns()
+    found = interpolate(series, at, tolerance_ns=tolerance, max_gap_ns=None)
+    return _frame_poses(Poses(*found, *series.stamps[[0, -1]], str(path)), at, frames)
+
+
+def _image_topics(reader, path: Path, image_topic, depth_topic, label_topic, use_depth) -> tuple:
     """(colour topic, depth topic or None): named, else the only one of each kind (an image
     topic is depth when its first message is ``16UC1`` / ``32FC1`` or compressed depth; no
     depth topic is picked without ``use_depth``)."""
-    topics = reader.topics
-    images = sorted(t for t, i in topics.items() if i.msgtype in (IMAGE, COMPRESSED))
-    encodings = {t: image_encoding(reader, bag, t) for t in images}
+    images = topics_of(reader, (IMAGE, COMPRESSED))
+    encodings = {t: image_encoding(reader, path, t) for t in images}
     depth_like = {t for t in images if encodings[t] in (*DEPTH_ENCODINGS, "compressedDepth")}
     colors = sorted(
         {t for t in images if t not in {depth_topic, label_topic} | depth_like}
         | ({image_topic} & set(images))
     )
-    image_topic = pick_topic(topics, bag, colors, image_topic, "colour image", "image_topic")
+    image_topic = pick_topic(reader, path, colors, image_topic, "colour image", "image_topic")
     if image_topic is None:
-        listed = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(topics.items()))
-        raise ValueError(
-            f"{bag}: no sensor_msgs/Image or CompressedImage colour topic (topics: "
-            f"{listed or 'none'})"
-        )
+        raise no_topic(reader, path, "sensor_msgs/Image or CompressedImage colour")
     depths = sorted(({*depth_like, depth_topic} & set(images)) - {image_topic, label_topic})
     if use_depth:
-        depth_topic = pick_topic(topics, bag, depths, depth_topic, "depth image", "depth_topic")
+        depth_topic = pick_topic(reader, path, depths, depth_topic, "depth image", "depth_topic")
     if label_topic is not None:
         others = [t for t in images if t != image_topic]
-        pick_topic(topics, bag, others, label_topic, "image", "label_topic")
+        pick_topic(reader, path, others, label_topic, "image", "label_topic")
     return image_topic, depth_topic
 
 
-def _color_intrinsics(reader, bag: str, image_topic: str, named, size) -> np.ndarray:
+def _color_intrinsics(reader, path: Path, image_topic: str, named, size) -> np.ndarray:
     """(4, 4) intrinsics of the colour images of ``size`` (W, H) from their CameraInfo."""
-    info = _info_topic(reader.topics, bag, image_topic, named, "camera_info_topic")
-    infos = sorted(t for t, i in reader.topics.items() if i.msgtype == CAMERA_INFO)
+    info = _info_topic(reader, path, image_topic, named, "camera_info_topic")
+    infos = topics_of(reader, (CAMERA_INFO,))
     if info is None and named is None and len(infos) == 1:
         info = infos[0]
     if info is None:
         raise ValueError(
-            f"{bag}: no sensor_msgs/CameraInfo topic beside {image_topic} (CameraInfo topics: "
+            f"{path}: no sensor_msgs/CameraInfo topic beside {image_topic} (CameraInfo topics: "
             f"{', '.join(infos) or 'none'}; name one with camera_info_topic=)"
         )
-    K, info_size = camera_intrinsics(first_message(reader, bag, info), f"{bag}: {info}")
+    K, info_size = camera_intrinsics(first_message(reader, path, info), f"{path}: {info}")
     if info_size not in (size, (0, 0)):
         raise ValueError(
-            f"{bag}: {info} is for {info_size[0]}x{info_size[1]} images, {image_topic} has "
+            f"{path}: {info} is for {info_size[0]}x{info_size[1]} images, {image_topic} has "
             f"{size[0]}x{size[1]}"
         )
     return K
 
 
 def _embeddings(
-    reader, bag, path, label_topic, embeddings_dir, dim, classes, label_map, patch_shape,
+    reader, path: Path, label_topic, embeddings_dir, dim, classes, label_map, patch_shape,
     color: BagTopic, stamps, selected, tolerance,
 ) -> Callable[[int], np.ndarray]:  # fmt: skip
     """``embedding_of(number)``: from the label topic, else from ``<stamp_ns>.npy`` files."""
     if label_topic is not None:
         check_label_classes(classes)
-        labels = BagTopic(reader, bag, label_topic)
+        labels = BagTopic(reader, path, label_topic)
         label_of = labels.matched(stamps, tolerance, selected)
 
         def embedding_of(number: int) -> np.ndarray:
             index = label_of[number]
-            where = f"{bag}: {label_topic} (message {index})"
+            where = f"{path}: {label_topic} (message {index})"
             image = label_image(labels.message(index), labels.msgtype, where)
             return patch_embeddings_from_labels(image, *patch_shape, classes, label_map)[0]
 
         return embedding_of
-    path = Path(path)
     folder = Path(embeddings_dir) if embeddings_dir is not None else None
     if folder is None:
         folder = (path if path.is_dir() else path.parent) / "embeddings"
         if not folder.is_dir():
             raise ValueError(
-                f"{bag}: no patch embeddings: name a label-image topic (label_topic=) or a "
+                f"{path}: no patch embeddings: name a label-image topic (label_topic=) or a "
                 f"folder of <stamp_ns>.npy files (embeddings_dir=; default {folder})"
             )
     if not folder.is_dir():

@@ -20,9 +20,10 @@ a cloud marked dense is an error; a cloud not marked dense (``is_dense`` false) 
 non-finite points (no return). The header stamps must increase from cloud to cloud.
 
 Odometry (``odometry_topic``): the only ``nav_msgs/Odometry`` topic, else named (any of
-:data:`~jaxloc.io._rosbag.POSE_TYPES`, or ``/tf``); a bag without one uses ``/tf`` when it moves
-the clouds' frame; ``"none"`` reads none. Its poses are interpolated to the clouds' stamps
-(:func:`jaxloc.io._rosbag.interpolate`), moved to the clouds' frame through ``/tf_static``
+:data:`~jaxloc.io._rosbag_poses.POSE_TYPES`, or ``/tf``); a bag without one uses ``/tf`` when it
+moves the clouds' frame (the clouds' frame in ``odom`` where the tree has it above them, else in
+the tree's root); ``"none"`` reads none. Its poses are interpolated to the clouds' stamps
+(:func:`jaxloc.io._rosbag_poses.interpolate`), carried to the clouds' frame through the TF tree
 where the odometry's child frame is another (a ``PoseStamped`` names no child frame: its poses
 are taken as the LiDAR's), and must cover every scan. Ground truth (``gt_topic``, a pose topic
 named) is read the same way, a scan outside it having no pose.
@@ -30,6 +31,7 @@ named) is read the same way, a scan outside it having no pose.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import weakref
 from pathlib import Path
@@ -38,22 +40,14 @@ from typing import Any
 import numpy as np
 
 from jaxloc.io import _rosbag as bag
-from jaxloc.io.poses import format_ns_as_seconds
+from jaxloc.io._rosbag_poses import NO_ODOMETRY, POSE_TYPES, BagPoses, pick_odometry, sensor_poses
 from jaxloc.io.semantickitti import LabelledScan, check_point_range, checked_class_ids
 
 #: The clouds' message type (as ``rosbags`` names it, for ROS 1 and ROS 2).
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
-#: The message type of odometry picked without ``odometry_topic``.
-ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
-#: ``odometry_topic`` value that reads no odometry.
-NO_ODOMETRY = "none"
 #: PointField datatypes (1-8) as numpy type codes.
 FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 _FLOATS, _PACKED = (7, 8), (5, 6)
-
-
-def _seconds(ns: int) -> str:
-    return format_ns_as_seconds(ns).rstrip("0").rstrip(".") + " s"
 
 
 def cloud_dtype(
@@ -180,7 +174,7 @@ class RosbagScans:
         self.odometry, self.odometry_topic = odometry
         self.ground_truth, self.has_ground_truth = ground_truth
         self.label_field, self.instance_field = fields
-        self._places = places  # per scan (log time, its rank among messages of that log time)
+        self._places = places  # per scan its place in the bag (bag.message_at)
         self._reader: list = []  # the open reader, once a scan was read
         weakref.finalize(self, _close, self._reader)
 
@@ -200,18 +194,9 @@ class RosbagScans:
         """
         if not self._reader:
             self._reader.append(bag.open_bag(self.path))
-        reader, where = self._reader[0], self.name(index)
-        log_time, rank = self._places[index]
-        found = bag.messages(reader, self.path, [self.topic], log_time, log_time + 1)
-        cloud = None
-        try:
-            for seen, (_, msgtype, _, raw) in enumerate(found):
-                if seen == rank:
-                    cloud = bag.deserialize(reader, raw, msgtype, where)
-                    break
-        finally:
-            found.close()
-        if cloud is None or bag.stamp_ns(cloud.header) != self.stamps[index]:
+        where = self.name(index)
+        cloud = bag.message_at(self._reader[0], self.path, self.topic, self._places[index], where)
+        if bag.stamp_ns(cloud.header) != self.stamps[index]:
             raise ValueError(f"{where}: the message is not where it was (the bag changed?)")
         return read_cloud(cloud, where, self.label_field, self.instance_field)
 
@@ -225,64 +210,34 @@ def _close(holder: list) -> None:
         holder.pop().close()
 
 
-def _frame_transform(static, child: str | None, frame: str, where: str) -> np.ndarray:
-    """``T_child_frame`` through ``/tf_static`` (identity when the poses are of ``frame``)."""
-    if child is None or child.lstrip("/") == frame.lstrip("/"):
-        return np.eye(4)
-    found = bag.static_transform(static, child, frame)
-    if found is None:
-        raise ValueError(
-            f"{where}: poses of frame {child!r}, clouds in {frame!r}, and no /tf_static "
-            "transform joins them"
-        )
-    return found
-
-
-def _topics(
-    reader, path: Path, topic, odometry_topic, gt_topic
-) -> tuple[str, str | None, str | None]:
+def _topics(reader, path: Path, topic, odometry_topic, gt_topic):
     """The clouds', odometry's and ground truth's topics (see :func:`open_rosbag_scans`)."""
-    types = bag.topic_types(reader)
-    clouds = bag.pick_topic(reader, path, (CLOUD_TYPE,), topic, "topic=", "PointCloud2")
+    clouds = bag.topics_of(reader, (CLOUD_TYPE,))
+    clouds = bag.pick_topic(reader, path, clouds, topic, "PointCloud2", "topic")
     if clouds is None:
-        listed = sorted(f"{name} ({msgtype})" for name, msgtype in types.items())
-        raise ValueError(f"{path}: no sensor_msgs/PointCloud2 topic (topics: {listed})")
-    odometry = None
-    if odometry_topic is None:
-        odometry = bag.pick_topic(
-            reader, path, (ODOMETRY_TYPE,), None, "odometry_topic=", "odometry"
-        )
-        if odometry is None and types.get(bag.TF_TOPIC) == bag.TF_TYPE:
-            odometry = bag.TF_TOPIC
-    elif odometry_topic != NO_ODOMETRY and types.get(odometry_topic) != bag.TF_TYPE:
-        kinds = bag.POSE_TYPES + (bag.TF_TYPE,)
-        odometry = bag.pick_topic(reader, path, kinds, odometry_topic, "odometry_topic=", "pose")
-    elif odometry_topic != NO_ODOMETRY:
-        odometry = odometry_topic
-    truth = None
-    if gt_topic is not None:
-        truth = bag.pick_topic(reader, path, bag.POSE_TYPES, gt_topic, "gt_topic=", "pose")
+        raise bag.no_topic(reader, path, "sensor_msgs/PointCloud2")
+    odometry = pick_odometry(reader, path, odometry_topic)
+    truth = bag.topics_of(reader, POSE_TYPES)
+    truth = None if gt_topic is None else bag.pick_topic(reader, path, truth, gt_topic, "pose",
+                                                         "gt_topic")  # fmt: skip
     return clouds, odometry, truth
 
 
-class _Collected:
-    """What one pass over the bag gathers: the clouds' frame, log times and stamps, the poses of
-    the odometry and ground-truth topics, the TF trees."""
+class _Clouds:
+    """What one pass over the bag gathers of the clouds: their frame, log times and stamps."""
 
-    def __init__(self, path: Path, pose_topics: set[str]) -> None:
+    def __init__(self) -> None:
         self.frame: str | None = None
         self.log_times: list[int] = []
         self.stamps: list[int] = []
-        self.poses = {topic: bag.PoseCollector(path, topic) for topic in pose_topics}
-        self.tf = bag.TfCollector(path)
 
-    def cloud(self, cloud, log_time: int, where: str, fields: tuple) -> None:
+    def add(self, cloud, log_time: int, where: str, fields: tuple) -> None:
         cloud_dtype(cloud, where, *fields)
         stamp = bag.stamp_ns(cloud.header)
         if self.stamps and stamp <= self.stamps[-1]:
             raise ValueError(
-                f"{where}: stamp {_seconds(stamp)} is not after the previous cloud's "
-                f"({_seconds(self.stamps[-1])}); the stamps must increase"
+                f"{where}: stamp {bag.seconds(stamp)} s is not after the previous cloud's "
+                f"({bag.seconds(self.stamps[-1])} s); the stamps must increase"
             )
         if self.frame is not None and cloud.header.frame_id != self.frame:
             raise ValueError(f"{where}: frame {cloud.header.frame_id!r}, not {self.frame!r}")
@@ -291,86 +246,58 @@ class _Collected:
         self.stamps.append(stamp)
 
 
-def _poses_at(found: _Collected, topic: str, stamps: np.ndarray, where: str):
-    """Poses of ``topic`` (a pose topic or TF) of the clouds' frame at ``stamps``:
-    ``(poses, covered, (first, last) stamp)``, or None for TF that does not move the frame."""
-    dynamic, static = found.tf.trees()
-    if topic not in found.poses:
-        chain = bag.tf_chain(dynamic, static, found.frame)
-        moving = [edge for edge in chain if dynamic.get(edge.child) is edge]
-        if not moving:
-            return None
-        poses, covered = bag.chain_poses(chain, dynamic, stamps)
-        first = max(int(edge.stamps[0]) for edge in moving)
-        return poses, covered, (first, min(int(edge.stamps[-1]) for edge in moving))
-    series = found.poses[topic].series()
-    extrinsic = _frame_transform(static, series.child, found.frame, where)
-    poses, covered = bag.interpolate(series, stamps)
-    return poses @ extrinsic, covered, (int(series.stamps[0]), int(series.stamps[-1]))
-
-
-def _odometry(found: _Collected, path: Path, topic, named: bool, stamps, clouds: str):
+def _odometry(found: BagPoses, topic, named: bool, frame: str, stamps, clouds: str):
     if topic is None:
         return None, None
-    at = _poses_at(found, topic, stamps, f"{path}: {topic}")
-    if at is None and named:
-        raise ValueError(f"{path}: {topic} does not move the clouds' frame {found.frame!r}")
+    at = sensor_poses(found, topic, frame, stamps, "clouds", required=named)
     if at is None:
         return None, None
-    poses, covered, (first, last) = at
-    if not covered.all():
-        miss = int(np.flatnonzero(~covered)[0])
+    if not at.covered.all():
+        miss = int(np.flatnonzero(~at.covered)[0])
         raise ValueError(
-            f"{path}: odometry {topic} ({_seconds(first)} to {_seconds(last)}) does not cover "
-            f"scan {miss} of {clouds} ({_seconds(int(stamps[miss]))}); pass "
-            f"odometry_topic={NO_ODOMETRY!r} to read none"
+            f"{found.path}: odometry {topic} ({bag.seconds(at.first)} s to "
+            f"{bag.seconds(at.last)} s) does not cover scan {miss} of {clouds} "
+            f"({bag.seconds(int(stamps[miss]))} s); pass odometry_topic={NO_ODOMETRY!r} to read "
+            "none"
         )
-    return poses, topic
+    return at.poses, topic
 
 
-def _ground_truth(found: _Collected, path: Path, topic, stamps, clouds: str):
+def _ground_truth(found: BagPoses, topic, frame: str, stamps, clouds: str):
     if topic is None:
         return None, np.zeros(len(stamps), bool)
-    poses, covered, (first, last) = _poses_at(found, topic, stamps, f"{path}: {topic}")
-    if not covered.any():
+    at = sensor_poses(found, topic, frame, stamps, "clouds")
+    if not at.covered.any():
         raise ValueError(
-            f"{path}: ground truth {topic} ({_seconds(first)} to {_seconds(last)}) covers no "
-            f"scan of {clouds} ({_seconds(int(stamps[0]))} to {_seconds(int(stamps[-1]))})"
+            f"{found.path}: ground truth {topic} ({bag.seconds(at.first)} s to "
+            f"{bag.seconds(at.last)} s) covers no scan of {clouds} "
+            f"({bag.seconds(int(stamps[0]))} s to {bag.seconds(int(stamps[-1]))} s)"
         )
-    return poses, covered
-
-
-def _ranks(log_times: list[int]) -> list[tuple[int, int]]:
-    places, previous, rank = [], None, 0
-    for log_time in log_times:
-        rank = rank + 1 if log_time == previous else 0
-        places.append((log_time, rank))
-        previous = log_time
-    return places
+    return at.poses, at.covered
 
 
 def open_rosbag_scans(
     path: str | os.PathLike,
     *,
+    every: int = 1,
     topic: str | None = None,
     odometry_topic: str | None = None,
     gt_topic: str | None = None,
     label_field: str | None = None,
     instance_field: str | None = None,
-    every: int = 1,
 ) -> RosbagScans:
     """Open the labelled clouds of a bag (see the module docstring): reads its topics, every
     cloud's header and layout (one at a time), the odometry and the ground truth.
 
     Args:
         path: a ``.bag``, a ROS 2 bag folder, or a ``.mcap`` / ``.db3`` file.
+        every: every ``every``-th cloud.
         topic: the PointCloud2 topic (default: the only one).
         odometry_topic: the odometry (default: the only ``nav_msgs/Odometry`` topic, else
             ``/tf``; ``"none"``: none).
         gt_topic: a pose topic of ground truth ``T_map_scan`` (default: none).
         label_field: the class field (default ``label``); instance_field: the instance field
             (default: the high 16 bits of a 32-bit label, else none).
-        every: every ``every``-th cloud.
 
     Returns:
         A :class:`RosbagScans`.
@@ -384,32 +311,23 @@ def open_rosbag_scans(
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
     path, fields = Path(path), (label_field, instance_field)
-    reader = bag.open_bag(path)
-    try:
+    with contextlib.closing(bag.open_bag(path)) as reader:
         clouds, odometry, truth = _topics(reader, path, topic, odometry_topic, gt_topic)
-        types = bag.topic_types(reader)
-        tf_topics = {t for t in (odometry, bag.TF_STATIC_TOPIC) if types.get(t) == bag.TF_TYPE}
-        pose_topics = {t for t in (odometry, truth) if t is not None} - tf_topics
-        found = _Collected(path, pose_topics)
-        wanted = [clouds, *sorted(pose_topics | tf_topics)]
-        for name, msgtype, log_time, raw in bag.messages(reader, path, wanted):
+        poses, found = BagPoses(reader, path, {odometry, truth} - {None}), _Clouds()
+        for name, msgtype, log_time, raw in bag.messages(reader, path, [clouds, *poses.topics]):
             where = f"{path}:{name}[{len(found.stamps)}]" if name == clouds else f"{path}: {name}"
             message = bag.deserialize(reader, raw, msgtype, where)
             if name == clouds:
-                found.cloud(message, log_time, where, fields)
-            elif name in tf_topics:
-                found.tf.add(message, name)
-            if name in found.poses:
-                found.poses[name].add(message, msgtype)
-    finally:
-        reader.close()
+                found.add(message, log_time, where, fields)
+            else:
+                poses.add(name, msgtype, message)
     if found.frame is None:
         raise ValueError(f"{path}: {clouds} holds no cloud")
     numbers = tuple(range(0, len(found.stamps), every))
     stamps = np.asarray(found.stamps, np.int64)[list(numbers)]
-    ranks = _ranks(found.log_times)
     named = odometry_topic is not None
-    moving = _odometry(found, path, odometry, named, stamps, clouds)
-    judged = _ground_truth(found, path, truth, stamps, clouds)
-    places = [ranks[n] for n in numbers]
+    moving = _odometry(poses, odometry, named, found.frame, stamps, clouds)
+    judged = _ground_truth(poses, truth, found.frame, stamps, clouds)
+    places = bag.places(found.log_times)
+    places = [places[n] for n in numbers]
     return RosbagScans(path, clouds, found.frame, numbers, stamps, places, moving, judged, fields)

@@ -1,5 +1,5 @@
 """M2Loc metrics: success rate P, RTE/RRE over successes, clique sizes, times (numpy), and the
-record of one scan of a drive."""
+record of one scan of a drive (and its text)."""
 
 from __future__ import annotations
 
@@ -7,6 +7,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from jaxloc.m2loc._accumulation import WINDOW_MIN_CLIQUE
 from jaxloc.m2loc._drive import STATUS_NAMES, DriveStep
 from jaxloc.metrics import pose_errors
 
@@ -97,3 +98,36 @@ def step_record(step: DriveStep, T_gt: np.ndarray | None = None, track: bool = F
         if not track:
             record["small_clique"] = step.small_clique
     return record
+
+
+def format_record(record: dict) -> str:
+    """The text of a scan's record (:func:`step_record`, with its ``scan`` name), as
+    ``jaxloc localize-lidar`` prints it: the instances, the verdict and why, the pose, the times
+    and, with ground truth, the errors."""
+
+    why = ""  # why a pose that passed the clique and verification tests was refused
+    if record["ambiguous"]:
+        why = " (ambiguous: another place fits as well)"
+    elif record.get("small_clique"):
+        why = f" (a window's pose needs a clique of {WINDOW_MIN_CLIQUE})"
+    classes = ", ".join(f"{n} x {c}" for c, n in record["instances_per_class"].items())
+    how = f"clique {record['clique_size']}, scales used {record['scales_used']}"
+    timing = (
+        f"  time: load {record['load_ms']:.1f} ms, descriptors {record['descriptor_ms']:.1f} ms, "
+        f"match + clique + pose {record['match_ms']:.1f} ms"
+    )
+    if "track" in record:
+        how = f"{record['track']}, {record['clique_size']} local associations"
+        timing = f"  time: load {record['load_ms']:.1f} ms, step {record['match_ms']:.1f} ms"
+    if record["compile_s"]:
+        timing += f" (first scan of this size: +{record['compile_s']:.1f} s compile or load)"
+    lines = [
+        f"{record['scan']}: {record['instances']} instances ({classes or 'none'}); "
+        f"{'valid' if record['valid'] else 'NOT valid'}{why}, {how}",
+        "  T_map_scan =",
+        *("    " + " ".join(f"{v:12.4f}" for v in row) for row in record["T_map_scan"]),
+        timing,
+    ]
+    if "rte_m" in record:
+        lines.append(f"  RTE {record['rte_m']:.3f} m, RRE {record['rre_deg']:.3f} deg")
+    return "\n".join(lines)

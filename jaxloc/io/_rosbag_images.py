@@ -1,6 +1,6 @@
-"""Reading ROS bags with ``rosbags.highlevel.AnyReader``: opening one, its damage as one-line
-errors, a topic's messages read lazily by their place in the bag, and the decoding of camera
-messages (``sensor_msgs/Image``, ``CompressedImage``, ``CameraInfo``) into arrays.
+"""The camera messages of a bag: a topic's messages indexed by stamp and read one at a time
+(:class:`BagTopic`), and ``sensor_msgs/Image``, ``CompressedImage`` and ``CameraInfo`` decoded
+into arrays.
 
 Images decode to 8-bit RGB (colour), float64 metres (depth, 0 = invalid) or int64 class ids
 (labels); intrinsics to the 4x4 pinhole matrices of :mod:`jaxloc.io.camera_frames`.
@@ -9,20 +9,15 @@ Images decode to 8-bit RGB (colour), float64 metres (depth, 0 = invalid) or int6
 from __future__ import annotations
 
 import io
-import os
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
+from jaxloc.io._rosbag import first_message, message_at, places, seconds, stamp_ns, topic_messages
 from jaxloc.io.camera_frames import IMAGE_ERRORS, check_intrinsics
-from jaxloc.io.poses import format_ns_as_seconds as seconds
 from jaxloc.io.poses import match_timestamps
 
-#: Bag files by suffix (a ROS 2 bag folder holds a ``metadata.yaml``).
-BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 IMAGE, COMPRESSED = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 #: Colour encodings read: channels and the order of R, G, B among them.
@@ -39,80 +34,41 @@ DEPTH_ENCODINGS = {"16UC1": (np.uint16, 1e-3), "32FC1": (np.float32, 1.0)}
 LABEL_ENCODINGS = {"mono8": np.uint8, "8UC1": np.uint8, "mono16": np.uint16, "16UC1": np.uint16}
 
 
-@contextmanager
-def bag_errors(where: str) -> Iterator[None]:
-    """Turn what reading a damaged bag raises into a ValueError naming ``where``: rosbags' own
-    errors, and what its storage back ends raise on damaged bytes (sqlite3, struct, lz4 and zstd
-    errors, assertions, overflowing sizes, undecodable text)."""
-    try:
-        yield
-    except Exception as err:
-        detail = " ".join(str(err).split())  # one line, whatever the back end wrote
-        raise ValueError(f"{where}: not a readable bag ({type(err).__name__}: {detail})") from None
-
-
-@contextmanager
-def open_bag(path: str | os.PathLike):
-    """An open ``rosbags.highlevel.AnyReader`` of the bag ``path`` (types from the bag, else ROS
-    2 Humble's). Raises ModuleNotFoundError without rosbags, FileNotFoundError, ValueError."""
-    try:
-        from rosbags.highlevel import AnyReader
-        from rosbags.typesys import Stores, get_typestore
-    except ModuleNotFoundError:
-        raise ModuleNotFoundError(
-            'reading a ROS bag needs the rosbags package: pip install "jaxloc[ros]"'
-        ) from None
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(2, "No such file or folder", str(path))
-    with bag_errors(str(path)):
-        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
-        reader.open()
-    try:
-        yield reader
-    finally:
-        reader.close()
-
-
 class BagTopic:
-    """One topic of an open bag: its messages' header stamps (int64 ns, increasing) and where
-    each lies in the bag, for reading any one of them later."""
+    """One topic of an open bag: its messages' header stamps (int64 ns, increasing; the receive
+    time where a stamp is 0) and where each lies in the bag, for reading any one of them later.
 
-    def __init__(self, reader, bag: str, topic: str):
-        self.reader, self.bag, self.topic = reader, bag, topic
-        self.connections = reader.topics[topic].connections
+    Raises:
+        ValueError: naming the bag and topic: no messages, stamps that do not increase.
+    """
+
+    def __init__(self, reader, path: Path, topic: str):
+        self.reader, self.path, self.topic = reader, path, topic
         self.msgtype = reader.topics[topic].msgtype
-        stamps, self.logtimes, self.nth = [], [], []
-        for logtime, message in self.messages():
-            stamp = message.header.stamp
-            stamps.append(stamp.sec * 10**9 + stamp.nanosec or logtime)
-            same = bool(self.logtimes) and self.logtimes[-1] == logtime
-            self.nth.append(self.nth[-1] + 1 if same else 0)
-            self.logtimes.append(logtime)
+        stamps, log_times = [], []
+        for log_time, message in topic_messages(reader, path, topic):
+            stamps.append(stamp_ns(message.header) or log_time)
+            log_times.append(log_time)
+        self.places = places(log_times)
         self.stamps = np.asarray(stamps, np.int64)
         if not len(self.stamps):
-            raise ValueError(f"{bag}: {topic} has no messages")
+            raise ValueError(f"{path}: {topic} has no messages")
         bad = np.flatnonzero(np.diff(self.stamps) <= 0)
         if bad.size:
             i = int(bad[0]) + 1
             raise ValueError(
-                f"{bag}: {topic}: message {i}'s stamp {seconds(self.stamps[i])} s is not after "
+                f"{path}: {topic}: message {i}'s stamp {seconds(self.stamps[i])} s is not after "
                 f"message {i - 1}'s ({seconds(self.stamps[i - 1])} s); stamps must increase"
             )
 
-    def messages(self, start: int | None = None, stop: int | None = None):
-        """(receive time ns, message) of the topic between ``start`` and ``stop``."""
-        return topic_messages(self.reader, self.bag, self.topic, start, stop)
-
     def message(self, index: int):
         """The topic's ``index``-th message, read from the bag."""
-        start = self.logtimes[index]
-        found = [m for _, m in self.messages(start, start + 1)]
-        return found[self.nth[index]]
+        where = f"{self.path}: {self.topic} (message {index})"
+        return message_at(self.reader, self.path, self.topic, self.places[index], where)
 
     def first(self):
-        """The topic's first message (read without indexing the topic)."""
-        return first_message(self.reader, self.bag, self.topic)
+        """The topic's first message."""
+        return first_message(self.reader, self.path, self.topic)
 
     def matched(self, stamps_ns: np.ndarray, tolerance: float, frames) -> dict[int, int]:
         """frame number -> index of this topic's message nearest in stamp to it (within
@@ -122,48 +78,10 @@ class BagTopic:
         if missing.size:
             k = int(missing[0])
             raise ValueError(
-                f"{self.bag}: {self.topic} has no message within {tolerance} s of frame "
+                f"{self.path}: {self.topic} has no message within {tolerance} s of frame "
                 f"{frames[k]} ({seconds(stamps_ns[k])} s; sync_tolerance)"
             )
         return {int(n): int(i) for n, i in zip(frames, index, strict=True)}
-
-
-def topic_messages(reader, bag: str, topic: str, start: int | None = None, stop: int | None = None):
-    """(receive time ns, deserialized message) of ``topic`` between ``start`` and ``stop`` (ns),
-    in the bag's order; a damaged bag is a ValueError naming the bag and topic."""
-    with bag_errors(f"{bag}: {topic}"):
-        for connection, logtime, raw in reader.messages(
-            reader.topics[topic].connections, start, stop
-        ):
-            yield logtime, reader.deserialize(raw, connection.msgtype)
-
-
-def first_message(reader, bag: str, topic: str):
-    """The first message of ``topic``; ValueError naming the bag and topic when it has none."""
-    for _, message in topic_messages(reader, bag, topic):
-        return message
-    raise ValueError(f"{bag}: {topic} has no messages")
-
-
-def pick_topic(
-    topics: Mapping, bag: str, candidates: list[str], named: str | None, what: str, option: str
-) -> str | None:
-    """The topic ``named`` (one of ``candidates``), else the only candidate, else None;
-    ValueError naming the bag, the option and the candidates otherwise."""
-    if named is not None:
-        if named not in candidates:
-            kind = f"a {topics[named].msgtype}" if named in topics else "not in the bag"
-            raise ValueError(
-                f"{bag}: {option}={named!r} is {kind}; {what} topics: "
-                f"{', '.join(candidates) or 'none'}"
-            )
-        return named
-    if len(candidates) > 1:
-        raise ValueError(
-            f"{bag}: {len(candidates)} {what} topics ({', '.join(candidates)}); name one with "
-            f"{option}="
-        )
-    return candidates[0] if candidates else None
 
 
 def _pixels(message, dtype, channels: int, where: str) -> np.ndarray:
@@ -234,8 +152,9 @@ def camera_intrinsics(message, where: str) -> tuple[np.ndarray, tuple[int, int]]
     return check_intrinsics(K, where), (int(message.width), int(message.height))
 
 
-def image_encoding(reader, bag: str, topic: str) -> str:
-    info = reader.topics[topic]
-    if info.msgtype == COMPRESSED:
-        return "compressedDepth" if "depth" in first_message(reader, bag, topic).format else ""
-    return first_message(reader, bag, topic).encoding
+def image_encoding(reader, path: Path, topic: str) -> str:
+    """The encoding of a topic's first image (``compressedDepth`` for compressed depth)."""
+    first = first_message(reader, path, topic)
+    if reader.topics[topic].msgtype == COMPRESSED:
+        return "compressedDepth" if "depth" in first.format else ""
+    return first.encoding
