@@ -444,3 +444,106 @@ def test_write_lidar_poses_picks_the_format_by_the_path(written, tmp_path):
             f"{name}: format {format!r} does not fit the name",
         )
     shutil.rmtree(tmp_path / "bag")
+
+
+# ----------------------------------------------------------------------------- a real map
+
+REAL_MAPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "helipr_instance_maps"
+
+
+def _clouds_of(scans) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Each scan's instance centroids as labelled clouds: a 2 m vertical stack of rings (radius
+    0.1 m, every 5 cm) centred on each centroid, raw SemanticKITTI ids with instance k + 1 in the
+    high 16 bits, so TripletLoc's clustering gives the centroids back."""
+    from jaxloc.synthetic.lidar_scans import _RAW
+
+    heights = np.arange(-1.0, 1.0 + 1e-9, 0.05)
+    ring = 0.1 * np.stack([np.cos(a := np.linspace(0, 2 * np.pi, 6, endpoint=False)), np.sin(a)])
+    offsets = np.array([[*ring[:, j], h] for h in heights for j in range(ring.shape[1])])
+    clouds, raws = [], []
+    for scan in scans:
+        points = np.concatenate([c + offsets for c in scan.points]).astype(np.float32)
+        raw = np.concatenate(
+            [np.full(len(offsets), _RAW[int(c)] | ((k + 1) << 16), np.uint32)
+             for k, c in enumerate(scan.labels)]
+        )  # fmt: skip
+        clouds.append(points)
+        raws.append(raw)
+    return clouds, raws
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not REAL_MAPS.exists(), reason="needs ../shared/data/helipr_instance_maps")
+def test_a_drive_on_a_real_map_from_bags_is_the_folder_s_drive(tmp_path):
+    """A drive simulated on KAIST04 (noisy odometry), written as a SemanticKITTI folder and as a
+    ROS 2 MCAP bag and a ROS 1 bag (``PointCloud2`` with a uint32 ``label`` field,
+    ``nav_msgs/Odometry``): ``localize-lidar MAP BAG --accumulate 3 --gt F`` gives the folder's
+    flags and poses (within 1e-3 m), and ``--poses-out est.mcap`` holds one PoseStamped per valid
+    estimate."""
+    from types import SimpleNamespace
+
+    from rosbags.highlevel import AnyReader
+
+    from jaxloc.io import open_triplet_map, read_instance_map, read_road_normals
+    from jaxloc.synthetic.outdoor import make_drive
+
+    folder = REAL_MAPS / "KAIST04"
+    instances, normals = read_instance_map(folder), read_road_normals(folder)
+    rng = np.random.default_rng(7000)
+    drive = make_drive(instances.points, instances.labels, normals, rng, 6, max_kept=11)
+    truth = np.stack([s.T_map_scan for s in drive])
+    noise = np.eye(4)
+    noise[:3, 3] = [0.05, -0.04, 0.01]
+    chain = [truth[0]]
+    for a, b in zip(truth, truth[1:], strict=False):
+        chain.append(chain[-1] @ np.linalg.inv(a) @ b @ noise)
+    chain = np.stack(chain)
+    clouds, raws = _clouds_of(drive)
+    scans = SimpleNamespace(points=clouds, raw_labels=raws, T_map_scan=truth)
+    saved = tmp_path / "kaist04.npz"
+    save_triplet_map(open_triplet_map(folder), saved)
+    write_kitti_twin(tmp_path / "folder", scans, truth)
+    odometry = tmp_path / "odometry.txt"
+    np.savetxt(odometry, chain[:, :3].reshape(-1, 12), fmt="%.17g")
+    gt = tmp_path / "gt.tum"
+    lines = [tum_line(format_ns_as_seconds(t), p) for t, p in zip(STAMPS, truth, strict=True)]
+    gt.write_text("\n".join(lines) + "\n")
+    common = ["--accumulate", "3", "--json", "--no-progress"]
+    expected = _records(["localize-lidar", saved, tmp_path / "folder", "--odometry", odometry,
+                         *common])  # fmt: skip
+    assert sum(r["valid"] for r in expected) >= 3, expected
+    for kind in ("mcap", "ros1"):
+        (tmp_path / kind).mkdir()
+        bag = write_drive(bag_path(tmp_path / kind, kind), kind, scans, STAMPS,
+                          odometry_poses=chain)  # fmt: skip
+        out = tmp_path / f"{kind}.mcap"
+        got = _records(["localize-lidar", saved, bag, "--gt", gt, "--poses-out", out, *common])
+        assert [r["valid"] for r in got] == [r["valid"] for r in expected]
+        for mine, theirs in zip(got, expected, strict=True):
+            if theirs["valid"]:
+                np.testing.assert_allclose(
+                    np.asarray(mine["T_map_scan"])[:3, 3],
+                    np.asarray(theirs["T_map_scan"])[:3, 3],
+                    atol=1e-3,
+                )
+                np.testing.assert_allclose(
+                    np.asarray(mine["T_map_scan"])[:3, :3],
+                    np.asarray(theirs["T_map_scan"])[:3, :3],
+                    atol=1e-5,
+                )
+        with AnyReader([out]) as reader:
+            poses = [c for c in reader.connections if c.topic == "/jaxloc/pose"]
+            assert poses and poses[0].msgtype == "geometry_msgs/msg/PoseStamped"
+            count = sum(1 for _ in reader.messages(connections=poses))
+        assert count == sum(r["valid"] for r in got)
+
+
+def _records(argv) -> list[dict]:
+    import contextlib
+    import io as text_io
+
+    printed = text_io.StringIO()
+    with contextlib.redirect_stdout(printed):
+        code = main([str(a) for a in argv])
+    assert code == 0
+    return json.loads(printed.getvalue())["scans"]
