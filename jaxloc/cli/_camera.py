@@ -56,17 +56,31 @@ examples:
 
 
 #: A bag SEQ's topics (open_camera_recording's keywords): flag, metavar, help.
-BAG_OPTIONS = OptionTable((
-    ("--image-topic", "TOPIC", "colour sensor_msgs/Image or CompressedImage"),
-    ("--depth-topic", "TOPIC", "depth sensor_msgs/Image (16UC1 mm, 32FC1 m)"),
-    ("--camera-info-topic", "TOPIC", "colour CameraInfo (default: camera_info beside the images)"),
-    ("--depth-info-topic", "TOPIC", "depth CameraInfo (default: camera_info beside the depth)"),
-    ("--odometry-topic", "TOPIC", "a pose topic, /tf or none (default: one Odometry, else /tf)"),
-    ("--odometry-frame", "FRAME", "the fixed frame of /tf odometry (default odom, else the root)"),
-    ("--label-topic", "TOPIC", "label images (class ids), made into patch embeddings"),
-    ("--gt-topic", "TOPIC", "ground truth: a nav_msgs/Odometry or PoseStamped topic"),
-    ("--gt", "FILE", "ground truth: a pose file (TUM lines interpolated to the frames)"),
-))  # fmt: skip
+BAG_OPTIONS = OptionTable(
+    (
+        ("--image-topic", "TOPIC", "colour sensor_msgs/Image or CompressedImage"),
+        ("--depth-topic", "TOPIC", "depth sensor_msgs/Image (16UC1 mm, 32FC1 m)"),
+        (
+            "--camera-info-topic",
+            "TOPIC",
+            "colour CameraInfo (default: camera_info beside the images)",
+        ),
+        ("--depth-info-topic", "TOPIC", "depth CameraInfo (default: camera_info beside the depth)"),
+        (
+            "--odometry-topic",
+            "TOPIC",
+            "a pose topic, /tf or none (default: one Odometry, else /tf)",
+        ),
+        (
+            "--odometry-frame",
+            "FRAME",
+            "the fixed frame of /tf odometry (default odom, else the root)",
+        ),
+        ("--label-topic", "TOPIC", "label images (class ids), made into patch embeddings"),
+        ("--gt-topic", "TOPIC", "ground truth: a nav_msgs/Odometry or PoseStamped topic"),
+        ("--gt", "FILE", "ground truth: a pose file (TUM lines interpolated to the frames)"),
+    )
+)
 
 
 def add_parser(commands) -> None:
@@ -84,12 +98,19 @@ def add_parser(commands) -> None:
         ("--rescan-json", "JSON", "3RScan.json (3rscan)"),
         ("--transform", "FILE", "4x4 applied to the poses"),
         ("--odometry", "FILE", "'N m00 ... m33', TUM or KITTI poses"),
-    ):  # fmt: skip
+    ):
         add(name, type=Path, metavar=metavar, help=text)
     add("--label-column", help="--label-table's class column (default nyu40id)")
     add("--scan-id", help="the rescan's id in --rescan-json (default: the folder's name)")
-    add_list(add, "--patches", positive_int, "9,16", "ROWS COLS of the "
-             "patch grid of embeddings made from label images", count=2, metavar="N")  # fmt: skip
+    add_list(
+        add,
+        "--patches",
+        positive_int,
+        "9,16",
+        "ROWS COLS of the patch grid of embeddings made from label images",
+        count=2,
+        metavar="N",
+    )
     add("--width", type=positive_int, default=320, help="working width, px")
     add("--height", type=positive_int, help="working height, px (default: keep the aspect)")
     add("--step", type=positive_int, help="use every STEP-th frame")
@@ -99,12 +120,23 @@ def add_parser(commands) -> None:
     BAG_OPTIONS.add(parser, "a bag SEQ (defaults: the bag's)")
     add = parser.add_argument_group("filter settings (defaults: SG2LocConfig's)").add_argument
     add("--particles", type=positive_int, help="particle capacity")
-    add_list(add, "--strides", positive_int, "20,8,4",
-             "ray stride per round (with --online: the first)", metavar="S")  # fmt: skip
-    add_list(add, "--boxes", positive_float, "0.8,0.4",
-             "re-init box half-widths, m", metavar="M")  # fmt: skip
-    add_list(add, "--heights", nonnegative_float, "1.2,1.3,1.4", "initial camera heights above "
-             "the floor, m (default PAPER_HEIGHTS)", metavar="H")  # fmt: skip
+    add_list(
+        add,
+        "--strides",
+        positive_int,
+        "20,8,4",
+        "ray stride per round (with --online: the first)",
+        metavar="S",
+    )
+    add_list(add, "--boxes", positive_float, "0.8,0.4", "re-init box half-widths, m", metavar="M")
+    add_list(
+        add,
+        "--heights",
+        nonnegative_float,
+        "1.2,1.3,1.4",
+        "initial camera heights above the floor, m (default PAPER_HEIGHTS)",
+        metavar="H",
+    )
     add("--online", action="store_true", help="stream the frames (jaxloc.sg2loc.online)")
     add("--seed", type=seed, default=0, help="random seed")
     add = parser.add_argument_group("output").add_argument
@@ -148,15 +180,30 @@ def _load_recording(args: argparse.Namespace):
     from jaxloc.io import open_camera_recording
 
     options = given(
-        format=args.format, width=args.width, height=args.height, embeddings_dir=args.embeddings,
-        labels_dir=args.labels, label_table=args.label_table, label_column=args.label_column,
-        patch_shape=args.patches, rescan_json=args.rescan_json, scan_id=args.scan_id,
-        transform=args.transform, odometry=args.odometry, step=args.step,
-        max_frames=args.max_frames, **BAG_OPTIONS.values(args),
-    )  # fmt: skip
+        format=args.format,
+        width=args.width,
+        height=args.height,
+        embeddings_dir=args.embeddings,
+        labels_dir=args.labels,
+        label_table=args.label_table,
+        label_column=args.label_column,
+        patch_shape=args.patches,
+        rescan_json=args.rescan_json,
+        scan_id=args.scan_id,
+        transform=args.transform,
+        odometry=args.odometry,
+        step=args.step,
+        max_frames=args.max_frames,
+        **BAG_OPTIONS.values(args),
+    )
     with reading():
-        return open_camera_recording(args.seq_dir, map_file=args.map, use_depth=not args.no_depth,
-                                     use_rgb=not args.no_rgb, **options)  # fmt: skip
+        return open_camera_recording(
+            args.seq_dir,
+            map_file=args.map,
+            use_depth=not args.no_depth,
+            use_rgb=not args.no_rgb,
+            **options,
+        )
 
 
 def _print_report(report: dict) -> None:
@@ -211,26 +258,33 @@ def run_localize_camera(args: argparse.Namespace) -> int:
         with reading():
             check_ssim_strides(strides, width, height, "--strides", "a larger --width, or --no-rgb")
     if not args.json:
-        print(f"map: {scene.num_objects} objects, {scene.num_triangles} triangles; sequence: "
-              f"{seq.num_frames} frames of a {folder.format} recording ({len(folder.skipped)} "
-              f"skipped without a pose), {seq.camera.width}x{seq.camera.height} px, "
-              f"{seq.patch_shape[0]}x{seq.patch_shape[1]} patches, depth "
-              f"{'yes' if seq.depth is not None else 'no'}")  # fmt: skip
+        print(
+            f"map: {scene.num_objects} objects, {scene.num_triangles} triangles; sequence: "
+            f"{seq.num_frames} frames of a {folder.format} recording ({len(folder.skipped)} "
+            f"skipped without a pose), {seq.camera.width}x{seq.camera.height} px, "
+            f"{seq.patch_shape[0]}x{seq.patch_shape[1]} patches, depth "
+            f"{'yes' if seq.depth is not None else 'no'}"
+        )
     key, progress = jax.random.key(args.seed), not args.no_progress
     if args.online:
         with tqdm(total=seq.num_frames, unit="frame", disable=not progress) as bar:
-            result = online.filter_sequence(key, scene, seq, config,
-                                            progress=lambda t: bar.update())  # fmt: skip
+            result = online.filter_sequence(
+                key, scene, seq, config, progress=lambda t: bar.update()
+            )
     else:  # the rounds compile side by side (warm_up's threads); localize waits for them
         warm_up(key, scene, seq, config, progress=progress)
         result = localize(key, scene, seq, config, progress=progress)
     poses = np.asarray(result.pose if args.online else result.poses, np.float64)
     report: dict = {
-        "map": str(args.map), "sequence": str(args.seq_dir), "format": folder.format,
-        "frames": list(folder.frame_ids), "skipped": list(folder.skipped),
-        "mode": "online" if args.online else "offline", "poses": poses.tolist(),
+        "map": str(args.map),
+        "sequence": str(args.seq_dir),
+        "format": folder.format,
+        "frames": list(folder.frame_ids),
+        "skipped": list(folder.skipped),
+        "mode": "online" if args.online else "offline",
+        "poses": poses.tolist(),
         "localized": np.asarray(result.localized, bool).tolist(),
-    }  # fmt: skip
+    }
     if folder.poses_gt is not None:
         report.update(summarize_sequence(poses, folder.poses_gt))
     if args.refine:
