@@ -37,16 +37,9 @@ def add_parser(commands) -> None:
     add("--particles", type=positive_int, help="particle capacity (default SG2LocConfig.capacity)")
     add("--width", type=positive_int, help="image width, px (default SensorConfig.width)")
     add("--height", type=positive_int, help="image height, px (default SensorConfig.height)")
-    add_list(
-        add,
-        "--strides",
-        positive_int,
-        "20,8,4",
-        "pixel stride of each coarse-to-fine "
-        "round, each casting at least SSIM's 7 x 7 rays (default SG2LocConfig.strides, each "
-        "lowered to the largest that fits the image)",
-        metavar="S",
-    )
+    strides = "pixel stride of each coarse-to-fine round, each casting at least SSIM's 7 x 7 rays"
+    fit = "(default SG2LocConfig.strides, each lowered to the largest that fits the image)"
+    add_list(add, "--strides", positive_int, "20,8,4", f"{strides} {fit}", metavar="S")
     add("--out", type=Path, default=Path("jaxloc_demo.png"), help="figure (PNG)")
     add("--rerun", type=Path, metavar="F.rrd", help=RERUN_HELP)
 

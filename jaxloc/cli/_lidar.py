@@ -83,24 +83,15 @@ def add_triplet_options(parser: argparse.ArgumentParser, scales: int | None = No
     """The localization settings (:func:`triplet_config`); None defaults are the library's."""
     group = parser.add_argument_group("localization settings (defaults: m2loc_config's)")
     add = group.add_argument
-    add(
-        "--scales",
-        type=int,
-        choices=(1, 2, 3),
-        default=scales,
-        help="M2Loc descriptor scales: [0,20], (20,30], (30,40] m",
-    )
+    edges = "M2Loc descriptor scales: [0,20], (20,30], (30,40] m"
+    add("--scales", type=int, choices=(1, 2, 3), default=scales, help=edges)
     add("--tripletloc", action="store_true", help="TripletLoc's descriptor (edge lengths)")
     add("-k", type=positive_int, help="map matches per scan instance and scale")
     add("--threshold", type=positive_float, help="consistency threshold of the match graph, m")
     add("--min-clique", type=positive_int, help="add scales while the clique is smaller (T)")
     add("--no-rsn", action="store_true", help="ignore the road-normal prior")
-    add(
-        "--no-robust",
-        action="store_true",
-        help="M2Loc as published (m2loc_config(robust="
-        "False)): cliques may join associations of one vertex, no clique hypotheses",
-    )
+    published = "cliques may join associations of one vertex, no clique hypotheses"
+    add("--no-robust", action="store_true", help=f"M2Loc as published (robust=False): {published}")
 
 
 def _matching_options(args: argparse.Namespace) -> dict:

@@ -24,11 +24,7 @@ geometry_msgs/PoseStamped per valid scan on /jaxloc/pose and a std_msgs/Bool ver
 BAG_OPTIONS = OptionTable(
     (
         ("--topic", "TOPIC", "the labelled sensor_msgs/PointCloud2 topic (default: the only one)"),
-        (
-            "--odometry-topic",
-            "TOPIC",
-            "a pose topic, /tf or none (default: one Odometry, else /tf)",
-        ),
+        ("--odometry-topic", "TOPIC", "pose topic, /tf or none (default: sole Odometry, else /tf)"),
         ("--gt-topic", "TOPIC", "a pose topic of ground-truth T_map_scan (or --gt FILE)"),
         ("--label-field", "FIELD", "the clouds' class field (default label)"),
         ("--instance-field", "FIELD", "their instance field (default: a 32-bit label's high bits)"),
@@ -48,47 +44,19 @@ def add_sequence_options(parser: argparse.ArgumentParser) -> None:
 def add_drive_options(parser: argparse.ArgumentParser) -> None:
     """How the scans of a drive are localized (:func:`drive_options`), and ``--poses-out``."""
     add = parser.add_argument
-    add(
-        "--accumulate",
-        type=positive_int,
-        default=1,
-        metavar="K",
-        help="localize each scan with "
-        "the last K scans fused through odometry, more while they hold few instances",
-    )
-    add(
-        "--window-instances",
-        type=count,
-        metavar="N",
-        help="with --accumulate K: grow the window "
-        "while it holds fewer than N instances (default DriveConfig.min_instances)",
-    )
-    add(
-        "--accumulate-max",
-        type=positive_int,
-        metavar="M",
-        help="with --accumulate K: the most scans a window grows to, M >= K (default 2K)",
-    )
-    add(
-        "--odometry",
-        type=Path,
-        metavar="FILE",
-        help="odometry for --accumulate and --track, any "
-        "format --gt takes (default: a bag's odometry, else the poses)",
-    )
-    add(
-        "--track",
-        action="store_true",
-        help="after a verified pose, localize the next scans near "
-        "the odometry's prediction (milliseconds), globally when that fails",
-    )
+    fuse = "localize each scan with the last K scans fused through odometry (more: few instances)"
+    add("--accumulate", type=positive_int, default=1, metavar="K", help=fuse)
+    grow = "with --accumulate K: grow the window while it holds fewer than N instances"
+    add("--window-instances", type=count, metavar="N", help=f"{grow} (default DriveConfig's)")
+    most = "with --accumulate K: the most scans a window grows to, M >= K (default 2K)"
+    add("--accumulate-max", type=positive_int, metavar="M", help=most)
+    odometry = "for --accumulate and --track, as --gt (default: a bag's odometry, else the poses)"
+    add("--odometry", type=Path, metavar="FILE", help=odometry)
+    track = "after a verified pose, localize the next scans near the odometry's prediction (ms)"
+    add("--track", action="store_true", help=f"{track}, globally when that fails")
     add("--poses-out", type=Path, metavar="FILE", help="estimated poses (see below)")
-    add(
-        "--pose-format",
-        choices=("tum", "kitti", "mcap", "rosbag2"),
-        default="tum",
-        help="of --poses-out",
-    )
+    formats = ("tum", "kitti", "mcap", "rosbag2")
+    add("--pose-format", choices=formats, default="tum", help="of --poses-out")
 
 
 def note_sequences(args: argparse.Namespace, sequences: Sequence) -> None:
