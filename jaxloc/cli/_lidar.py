@@ -219,15 +219,10 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
 
     def progress(index: int, step) -> None:
         stamp, judged = recording.stamps[index], recording.has_pose[index]
-        records.append(
-            {
-                "scan": recording.name(index),
-                **({} if stamp is None else {"timestamp_ns": int(stamp)}),
-                **evaluation.step_record(
-                    step, recording.poses[index] if judged else None, args.track
-                ),
-            }
-        )
+        record = {"scan": recording.name(index)}
+        record |= {} if stamp is None else {"timestamp_ns": int(stamp)}
+        T_gt = recording.poses[index] if judged else None
+        records.append(record | evaluation.step_record(step, T_gt, args.track))
         bar.update()
         if not args.json:
             tqdm.write(evaluation.format_record(records[-1]))
@@ -250,14 +245,8 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
             )
     if args.rerun is not None:
         seconds = None if recording.timestamps is None else recording.timestamps / 1e9
-        io.write_drive_rerun(
-            args.rerun,
-            triplet_map,
-            result,
-            recording.poses,
-            has_gt=recording.has_pose,
-            timestamps=seconds,
-        )
+        drive_run = (args.rerun, triplet_map, result, recording.poses)
+        io.write_drive_rerun(*drive_run, has_gt=recording.has_pose, timestamps=seconds)
         say(f"rerun: {args.rerun}")
     summary = {"map": str(args.map), "map_instances": num_vertices, "map_build_s": build_s}
     judged = np.asarray(recording.has_pose, bool)
