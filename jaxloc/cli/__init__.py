@@ -54,12 +54,17 @@ folder, up to 2 GiB (least recently used entries go first); clearing it costs co
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``jaxloc`` command and its subcommands."""
-    parser = Parser(prog="jaxloc", description="Differentiable global localization against "
-                    "compact maps.", epilog=_MAIN_EPILOG, formatter_class=Formatter)  # fmt: skip
+    parser = Parser(
+        prog="jaxloc",
+        description="Differentiable global localization against compact maps.",
+        epilog=_MAIN_EPILOG,
+        formatter_class=Formatter,
+    )
     no_cache = "do not use JAX's persistent compilation cache (also: JAXLOC_NO_CACHE=1)"
     parser.add_argument("--no-cache", action="store_true", help=no_cache)
-    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND",
-                                     help="COMMAND --help", parser_class=Parser)  # fmt: skip
+    commands = parser.add_subparsers(
+        dest="command", required=True, metavar="COMMAND", help="COMMAND --help", parser_class=Parser
+    )
     for module in (_demo, _lidar, _lidar_map, _bench, _scene_graph, _camera):
         module.add_parser(commands)
     cache = command(commands, "cache", _CACHE_DESCRIPTION)
@@ -95,18 +100,24 @@ def _enable_cache() -> None:
 #: after parsing and before the command does any work: an InputError, one line, exit status 2.
 #: A single option's range is checked where it is parsed (:mod:`jaxloc.cli._options`).
 _CHECKS: dict[str, Callable[[argparse.Namespace], object]] = {
-    "demo": _demo.fitting_strides, "localize-lidar": _lidar.check_localize_lidar,
+    "demo": _demo.fitting_strides,
+    "localize-lidar": _lidar.check_localize_lidar,
     "build-lidar-map": _lidar_map.check_build_lidar_map,
-    "bench raycast": _bench.check_bench_raycast, "bench filter": _bench.check_bench_filter,
-}  # fmt: skip
+    "bench raycast": _bench.check_bench_raycast,
+    "bench filter": _bench.check_bench_filter,
+}
 
 _COMMANDS: dict[str, Callable[[argparse.Namespace], int]] = {
-    "demo": _demo.run_demo, "localize-lidar": _lidar.run_localize_lidar,
-    "build-lidar-map": _lidar_map.run_build_lidar_map, "bench raycast": _bench.run_bench_raycast,
-    "bench filter": _bench.run_bench_filter, "bench triplet": _bench.run_bench_triplet,
+    "demo": _demo.run_demo,
+    "localize-lidar": _lidar.run_localize_lidar,
+    "build-lidar-map": _lidar_map.run_build_lidar_map,
+    "bench raycast": _bench.run_bench_raycast,
+    "bench filter": _bench.run_bench_filter,
+    "bench triplet": _bench.run_bench_triplet,
     "build-scene-graph": _scene_graph.run_build_scene_graph,
-    "localize-camera": _camera.run_localize_camera, "cache": run_cache,
-}  # fmt: skip
+    "localize-camera": _camera.run_localize_camera,
+    "cache": run_cache,
+}
 
 
 #: The commands compiled with XLA:CPU's legacy fusion emitters (:func:`prefer_fast_compilation`):

@@ -3,11 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import time
-from collections.abc import Callable
 from pathlib import Path
-
-import numpy as np
 
 from jaxloc.cli._demo import demo_episode_config
 from jaxloc.cli._errors import InputError, reading
@@ -31,9 +27,12 @@ def add_parser(commands) -> None:
     about = "Quick speed checks: raycast (rays/s), filter (s/frame), triplet (ms/query)\n"
     bench = command(commands, "bench", about + "\nOn synthetic data (no downloads).", _EPILOG)
     kinds = bench.add_subparsers(
-        dest="bench", required=True, metavar="WHAT", help="what to time (WHAT --help: options)",
+        dest="bench",
+        required=True,
+        metavar="WHAT",
+        help="what to time (WHAT --help: options)",
         parser_class=Parser,
-    )  # fmt: skip
+    )
 
     def add(name: str, description: str, **options) -> argparse.ArgumentParser:
         """A bench whose ``options`` are ``NAME=(default, help[, type])``, positive integers
@@ -45,38 +44,41 @@ def add_parser(commands) -> None:
         return parser
 
     width, height = (480, "image width, px"), (270, "image height, px")
-    add("raycast", "rays/s of jax.jit(render_batch) on random poses in a synthetic room",
-        poses=(64, "camera poses"), width=width, height=height,
+    add(
+        "raycast",
+        "rays/s of jax.jit(render_batch) on random poses in a synthetic room",
+        poses=(64, "camera poses"),
+        width=width,
+        height=height,
         stride=(10, "pixel stride, at most 2 x min(width, height) - 1"),
-        objects=(20, "furniture objects"), vertices=(600, "per object mesh", at_least(100)),
-        repeats=(3, "timed runs, best of"), seed=(0, "room and pose seed", seed),
-    )  # fmt: skip
-    add("filter", "s/frame of the SG2Loc particle filter in the demo's room\n\nOne round: render, "
+        objects=(20, "furniture objects"),
+        vertices=(600, "per object mesh", at_least(100)),
+        repeats=(3, "timed runs, best of"),
+        seed=(0, "room and pose seed", seed),
+    )
+    add(
+        "filter",
+        "s/frame of the SG2Loc particle filter in the demo's room\n\nOne round: render, "
         "score, resample per frame.",
-        particles=(1000, "capacity"), frames=(3, "frames timed"), width=(160, width[1]),
-        height=(90, height[1]), stride=(8, "pixel stride, casting at least SSIM's 7 x 7 rays"),
+        particles=(1000, "capacity"),
+        frames=(3, "frames timed"),
+        width=(160, width[1]),
+        height=(90, height[1]),
+        stride=(8, "pixel stride, casting at least SSIM's 7 x 7 rays"),
         seed=(1, "episode seed", seed),
-    )  # fmt: skip
+    )
     triplet = add(
-        "triplet", "ms/query and success rate of M2Loc on a synthetic world or a map folder\n\n"
+        "triplet",
+        "ms/query and success rate of M2Loc on a synthetic world or a map folder\n\n"
         "localize_scan on scan-like queries cut from it (jaxloc.synthetic.outdoor.make_query).",
-        queries=(20, "queries"), blocks=(2, "synthetic world: blocks per side"),
+        queries=(20, "queries"),
+        blocks=(2, "synthetic world: blocks per side"),
         max_kept=(24, "map instances kept per query (with spurious ones <= 31: one compilation)"),
         seed=(0, "world and query seed", seed),
-    )  # fmt: skip
+    )
     triplet.add_argument("--map", type=Path, help="instance map folder (default: synthetic)")
     triplet.add_argument("--world", choices=("sparse", "dense"), default="dense", help="kind")
     add_triplet_options(triplet, scales=1)
-
-
-def _timed(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
-    """Best-of-``repeats`` wall seconds and the process CPU seconds of that run."""
-    best = (np.inf, np.inf)
-    for _ in range(repeats):
-        wall, cpu = time.perf_counter(), time.process_time()
-        fn()
-        best = min(best, (time.perf_counter() - wall, time.process_time() - cpu))
-    return best
 
 
 def check_bench_raycast(args: argparse.Namespace) -> None:
@@ -85,8 +87,10 @@ def check_bench_raycast(args: argparse.Namespace) -> None:
 
     if min(stride_grid_shape(args.stride, args.width, args.height)) < 1:
         largest = 2 * min(args.width, args.height) - 1
-        raise InputError(f"--stride {args.stride} casts no ray on a {args.width} x {args.height} "
-                         f"image; use --stride {largest} or less")  # fmt: skip
+        raise InputError(
+            f"--stride {args.stride} casts no ray on a {args.width} x {args.height} "
+            f"image; use --stride {largest} or less"
+        )
 
 
 def check_bench_filter(args: argparse.Namespace) -> None:
@@ -108,71 +112,39 @@ def describe_engine() -> str:
 
 
 def run_bench_raycast(args: argparse.Namespace) -> int:
-    import jax
+    from jaxloc.synthetic.timing import time_raycast
 
-    from jaxloc.camera import Camera, stride_grid
-    from jaxloc.sg2loc import render_batch
-    from jaxloc.synthetic.indoor import RoomConfig, make_room, scene_graph
-
-    objects, vertices = (args.objects,) * 2, (args.vertices,) * 2
-    room = make_room(args.seed, RoomConfig(num_objects=objects, vertex_range=vertices))
-    scene = scene_graph(room)
-    camera = Camera.from_fov(args.width, args.height, 60.0)
-    grid = stride_grid(camera, args.stride)
-    rng = np.random.default_rng(args.seed)
-    (lx, ly, _), n = room.size, args.poses
-    ranges = ((0.3, lx - 0.3), (0.3, ly - 0.3), (1.2, 1.8), (-np.pi, np.pi))  # x, y, z, yaw
-    poses = np.column_stack([rng.uniform(lo, hi, n) for lo, hi in ranges]).astype(np.float32)
-    start = time.perf_counter()
-    compiled = jax.jit(render_batch).lower(scene, poses, camera, grid).compile()
-    compile_s = time.perf_counter() - start
-    wall, cpu = _timed(lambda: jax.block_until_ready(compiled(scene, poses, camera, grid)),
-                       args.repeats)  # fmt: skip
-    rays, per_cpu_s = n * grid.uv.shape[0], n * grid.uv.shape[0] / max(cpu, 1e-9) / 1e6
-    print(f"raycast (render_batch): {scene.num_objects} objects, {scene.num_triangles} triangles; "
-          f"{n} poses x {grid.uv.shape[0]} rays ({args.width}x{args.height}, stride "
-          f"{args.stride}) = {rays} rays\n  engine: {describe_engine()}\n  compile "
-          f"{compile_s:.2f} s; best of {args.repeats}: {wall * 1e3:.1f} ms\n  "
-          f"{rays / wall / 1e6:.3f} M rays/s (wall), {per_cpu_s:.3f} M rays per "
-          "CPU-second")  # fmt: skip
+    sizes = ("seed", "poses", "width", "height", "stride", "objects", "vertices", "repeats")
+    t = time_raycast(**{name: getattr(args, name) for name in sizes})
+    print(
+        f"raycast (render_batch): {t.num_objects} objects, {t.num_triangles} triangles; "
+        f"{t.poses} poses x {t.rays_per_pose} rays ({args.width}x{args.height}, stride "
+        f"{args.stride}) = {t.rays} rays\n  engine: {describe_engine()}\n  compile "
+        f"{t.compile_s:.2f} s; best of {t.repeats}: {t.wall_s * 1e3:.1f} ms\n  "
+        f"{t.rays_per_s / 1e6:.3f} M rays/s (wall), {t.rays_per_cpu_s / 1e6:.3f} M rays per "
+        "CPU-second"
+    )
     return 0
 
 
 def run_bench_filter(args: argparse.Namespace) -> int:
-    import jax
+    from jaxloc.synthetic.timing import time_filter
 
-    from jaxloc.camera import stride_grid
-    from jaxloc.sg2loc import KLDConfig, SG2LocConfig, kld_for_capacity, localize
-    from jaxloc.synthetic import indoor
-
-    start = time.perf_counter()
-    episode = indoor.make_episode(args.seed, args.frames, demo_episode_config(args))
-    build_s = time.perf_counter() - start
-    scene, sequence = episode.scene, episode.sequence
-    kld = kld_for_capacity(args.particles, KLDConfig(min_particles=300))
-    config = SG2LocConfig(capacity=args.particles, strides=(args.stride,), kld=kld)
-
-    def run(seed: int) -> None:  # the demo's path: one scan per round, a progress bar
-        result = localize(jax.random.key(seed), scene, sequence, config, progress=True)
-        jax.block_until_ready(result.poses)
-
-    start = time.perf_counter()
-    run(args.seed)
-    first_s = time.perf_counter() - start
-    wall, cpu = _timed(lambda: run(args.seed + 1), 1)
-    rays = stride_grid(sequence.camera, args.stride).uv.shape[0]
-    print(f"filter (SG2Loc, one round): {args.particles} particles x {rays} rays "
-          f"({args.width}x{args.height}, stride {args.stride}), {scene.num_objects} objects, "
-          f"{scene.num_triangles} triangles (episode built in {build_s:.1f} s)\n  compile "
-          f"{max(first_s - wall, 0.0):.2f} s\n  {wall / args.frames:.4f} s/frame wall, "
-          f"{cpu / args.frames:.4f} s/frame CPU (mean over {args.frames} frames)")  # fmt: skip
+    config = demo_episode_config(args)  # the demo's room: its compilations are shared
+    t = time_filter(config, args.seed, args.frames, args.particles, args.stride)
+    print(
+        f"filter (SG2Loc, one round): {t.particles} particles x {t.rays_per_particle} rays "
+        f"({args.width}x{args.height}, stride {args.stride}), {t.num_objects} objects, "
+        f"{t.num_triangles} triangles (episode built in {t.build_s:.1f} s)\n  compile "
+        f"{t.compile_s:.2f} s\n  {t.s_per_frame:.4f} s/frame wall, {t.cpu_s_per_frame:.4f} "
+        f"s/frame CPU (mean over {t.frames} frames)"
+    )
     return 0
 
 
 def run_bench_triplet(args: argparse.Namespace) -> int:
-    from jaxloc.m2loc import localize_drive
-    from jaxloc.m2loc._evaluation import localization_success
-    from jaxloc.synthetic.outdoor import make_outdoor_world, make_query
+    from jaxloc.synthetic.outdoor import make_outdoor_world
+    from jaxloc.synthetic.timing import time_triplet
 
     config = triplet_config(args)
     if args.map is not None:
@@ -188,19 +160,14 @@ def run_bench_triplet(args: argparse.Namespace) -> int:
         points, labels, normals = world.points, world.labels, world.road_normals
         name = f"synthetic {args.world} world ({args.blocks}x{args.blocks} blocks)"
     triplet_map = describe_map(points, labels, config, None if args.no_rsn else normals, name)
-    rng = np.random.default_rng(args.seed + 1)
-    queries = [make_query(points, labels, normals, rng, max_kept=args.max_kept)
-               for _ in range(args.queries)]  # fmt: skip
-    drive = localize_drive(triplet_map, queries)  # each query alone, compile timed apart
-    truth = np.stack([q.T_map_scan for q in queries])
-    success = localization_success(drive.poses, truth, drive.valid)
-    times = np.array([(s.result.descriptor_time_ms, s.result.match_time_ms) for s in drive.steps])
-    desc, match = np.median(times, axis=0)
-    sizes = [len(q.points) for q in queries]
+    sizes = dict(queries=args.queries, max_kept=args.max_kept, seed=args.seed + 1)
+    t = time_triplet(triplet_map, points, labels, normals, **sizes)
     scales = len(config.descriptor.scale_edges)
-    print(f"triplet ({'TripletLoc' if args.tripletloc else f'M2Loc, {scales} scale(s)'}, "
-          f"k={config.top_k}): {name}, {len(points)} map instances; {args.queries} queries of "
-          f"{min(sizes)}-{max(sizes)} instances\n  compile {float(drive.compile_s.sum()):.2f} s"
-          f"\n  descriptors {desc:.2f} ms/query, match + clique + pose {match:.2f} ms/query "
-          f"(medians); success {success.mean():.0%}")  # fmt: skip
+    print(
+        f"triplet ({'TripletLoc' if args.tripletloc else f'M2Loc, {scales} scale(s)'}, "
+        f"k={config.top_k}): {name}, {len(points)} map instances; {t.queries} queries of "
+        f"{t.query_instances[0]}-{t.query_instances[1]} instances\n  compile {t.compile_s:.2f} s"
+        f"\n  descriptors {t.descriptor_ms:.2f} ms/query, match + clique + pose {t.match_ms:.2f} "
+        f"ms/query (medians); success {t.success_rate:.0%}"
+    )
     return 0

@@ -56,17 +56,19 @@ examples:
 
 
 #: A bag SEQ's topics (open_camera_recording's keywords): flag, metavar, help.
-BAG_OPTIONS = OptionTable((
-    ("--image-topic", "TOPIC", "colour sensor_msgs/Image or CompressedImage"),
-    ("--depth-topic", "TOPIC", "depth sensor_msgs/Image (16UC1 mm, 32FC1 m)"),
-    ("--camera-info-topic", "TOPIC", "colour CameraInfo (default: camera_info beside the images)"),
-    ("--depth-info-topic", "TOPIC", "depth CameraInfo (default: camera_info beside the depth)"),
-    ("--odometry-topic", "TOPIC", "a pose topic, /tf or none (default: one Odometry, else /tf)"),
-    ("--odometry-frame", "FRAME", "the fixed frame of /tf odometry (default odom, else the root)"),
-    ("--label-topic", "TOPIC", "label images (class ids), made into patch embeddings"),
-    ("--gt-topic", "TOPIC", "ground truth: a nav_msgs/Odometry or PoseStamped topic"),
-    ("--gt", "FILE", "ground truth: a pose file (TUM lines interpolated to the frames)"),
-))  # fmt: skip
+BAG_OPTIONS = OptionTable(
+    (
+        ("--image-topic", "TOPIC", "colour sensor_msgs/Image or CompressedImage"),
+        ("--depth-topic", "TOPIC", "depth sensor_msgs/Image (16UC1 mm, 32FC1 m)"),
+        ("--camera-info-topic", "TOPIC", "colour CameraInfo (default: the images' camera_info)"),
+        ("--depth-info-topic", "TOPIC", "depth CameraInfo (default: the depth's camera_info)"),
+        ("--odometry-topic", "TOPIC", "pose topic, /tf or none (default: sole Odometry, else /tf)"),
+        ("--odometry-frame", "FRAME", "/tf odometry's fixed frame (default odom, else the root)"),
+        ("--label-topic", "TOPIC", "label images (class ids), made into patch embeddings"),
+        ("--gt-topic", "TOPIC", "ground truth: a nav_msgs/Odometry or PoseStamped topic"),
+        ("--gt", "FILE", "ground truth: a pose file (TUM lines interpolated to the frames)"),
+    )
+)
 
 
 def add_parser(commands) -> None:
@@ -84,12 +86,12 @@ def add_parser(commands) -> None:
         ("--rescan-json", "JSON", "3RScan.json (3rscan)"),
         ("--transform", "FILE", "4x4 applied to the poses"),
         ("--odometry", "FILE", "'N m00 ... m33', TUM or KITTI poses"),
-    ):  # fmt: skip
+    ):
         add(name, type=Path, metavar=metavar, help=text)
     add("--label-column", help="--label-table's class column (default nyu40id)")
     add("--scan-id", help="the rescan's id in --rescan-json (default: the folder's name)")
-    add_list(add, "--patches", positive_int, "9,16", "ROWS COLS of the "
-             "patch grid of embeddings made from label images", count=2, metavar="N")  # fmt: skip
+    grid = "ROWS COLS of the patch grid of embeddings made from label images"
+    add_list(add, "--patches", positive_int, "9,16", grid, count=2, metavar="N")
     add("--width", type=positive_int, default=320, help="working width, px")
     add("--height", type=positive_int, help="working height, px (default: keep the aspect)")
     add("--step", type=positive_int, help="use every STEP-th frame")
@@ -99,12 +101,11 @@ def add_parser(commands) -> None:
     BAG_OPTIONS.add(parser, "a bag SEQ (defaults: the bag's)")
     add = parser.add_argument_group("filter settings (defaults: SG2LocConfig's)").add_argument
     add("--particles", type=positive_int, help="particle capacity")
-    add_list(add, "--strides", positive_int, "20,8,4",
-             "ray stride per round (with --online: the first)", metavar="S")  # fmt: skip
-    add_list(add, "--boxes", positive_float, "0.8,0.4",
-             "re-init box half-widths, m", metavar="M")  # fmt: skip
-    add_list(add, "--heights", nonnegative_float, "1.2,1.3,1.4", "initial camera heights above "
-             "the floor, m (default PAPER_HEIGHTS)", metavar="H")  # fmt: skip
+    strides = "ray stride per round (with --online: the first)"
+    add_list(add, "--strides", positive_int, "20,8,4", strides, metavar="S")
+    add_list(add, "--boxes", positive_float, "0.8,0.4", "re-init box half-widths, m", metavar="M")
+    heights = "initial camera heights above the floor, m (default PAPER_HEIGHTS)"
+    add_list(add, "--heights", nonnegative_float, "1.2,1.3,1.4", heights, metavar="H")
     add("--online", action="store_true", help="stream the frames (jaxloc.sg2loc.online)")
     add("--seed", type=seed, default=0, help="random seed")
     add = parser.add_argument_group("output").add_argument
@@ -128,62 +129,23 @@ def _config(args: argparse.Namespace):
         return SG2LocConfig(**options, capacity=capacity, kld=kld_for_capacity(capacity))
 
 
-def _refine_last(scene, folder, last_pose) -> dict:
-    """:func:`jaxloc.sg2loc.refine.refine` of the last frame, with its errors if there is truth."""
-    from jaxloc.io.camera_recording import camera_pose_matrices
-    from jaxloc.metrics import pose_errors
-    from jaxloc.sg2loc.refine import refine
-
-    refined = refine(scene, folder.sequence, last_pose)
-    T = np.asarray(refined.pose.as_matrix(), np.float64)
-    out = {"ok": bool(refined.ok), "status": int(refined.status), "T_world_cam": T.tolist()}
-    if folder.poses_gt is not None:
-        T_gt = camera_pose_matrices(folder.poses_gt[-1:], folder.tilt_gt[-1:])[0]
-        out["position_error_m"], out["rotation_error_deg"] = map(float, pose_errors(T, T_gt))
-    return out
-
-
 def _load_recording(args: argparse.Namespace):
     """:func:`jaxloc.io.open_camera_recording` with the options given, its defaults else."""
     from jaxloc.io import open_camera_recording
 
-    options = given(
-        format=args.format, width=args.width, height=args.height, embeddings_dir=args.embeddings,
-        labels_dir=args.labels, label_table=args.label_table, label_column=args.label_column,
-        patch_shape=args.patches, rescan_json=args.rescan_json, scan_id=args.scan_id,
-        transform=args.transform, odometry=args.odometry, step=args.step,
-        max_frames=args.max_frames, **BAG_OPTIONS.values(args),
-    )  # fmt: skip
+    renamed = {"embeddings_dir": "embeddings", "labels_dir": "labels", "patch_shape": "patches"}
+    same = ("format", "width", "height", "label_table", "label_column", "rescan_json", "scan_id")
+    names = (*same, "transform", "odometry", "step", "max_frames", *renamed)
+    options = given(**{name: getattr(args, renamed.get(name, name)) for name in names})
+    options |= BAG_OPTIONS.values(args)
     with reading():
-        return open_camera_recording(args.seq_dir, map_file=args.map, use_depth=not args.no_depth,
-                                     use_rgb=not args.no_rgb, **options)  # fmt: skip
-
-
-def _print_report(report: dict) -> None:
-    """The text output of the JSON ``report``: a line per frame, the summaries, the refinement."""
-    for t, number in enumerate(report["frames"]):
-        (x, y, z, yaw), verdict = report["poses"][t], report["localized"][t]
-        line = f"frame {number}: {'localized' if verdict else 'NOT localized'}, x {x:.3f} y "
-        line += f"{y:.3f} z {z:.3f} m, yaw {np.degrees(yaw):.1f} deg"
-        if "position_error_m" in report:
-            line += f" | error {report['position_error_m'][t]:.3f} m, "
-            line += f"{report['rotation_error_deg'][t]:.2f} deg"
-        print(line)
-    print(f"localized: {sum(report['localized'])} of {len(report['frames'])} frames")
-    for name in ("all_frames", "last_frame"):
-        if name in report:
-            values = ", ".join(f"{k} {v:.3f}" for k, v in report[name].items())
-            print(f"{name.replace('_', ' ')}: {values}")
-    if refined := report.get("refined"):
-        line = f"refined last frame: ok {refined['ok']} (status {refined['status']})"
-        if "position_error_m" in refined:
-            line += f", error {refined['position_error_m']:.3f} m, "
-            line += f"{refined['rotation_error_deg']:.2f} deg"
-        matrix = np.array2string(np.asarray(refined["T_world_cam"]), precision=4)
-        print(f"{line}\nT_world_cam =\n{matrix}")
-    for key in ("figure", "rerun"):
-        if key in report:
-            print(f"{key}: {report[key]}")
+        return open_camera_recording(
+            args.seq_dir,
+            map_file=args.map,
+            use_depth=not args.no_depth,
+            use_rgb=not args.no_rgb,
+            **options,
+        )
 
 
 def run_localize_camera(args: argparse.Namespace) -> int:
@@ -191,9 +153,11 @@ def run_localize_camera(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from jaxloc.io import write_camera_poses, write_rerun
+    from jaxloc.io.camera_recording import camera_pose_matrices
     from jaxloc.io.scene_map import load_scene
     from jaxloc.metrics import summarize_sequence
     from jaxloc.sg2loc import check_ssim_strides, localize, online, warm_up
+    from jaxloc.sg2loc._report import format_report, refinement_record
     from jaxloc.sg2loc.figures import plot_rounds
 
     if args.online and args.plot is not None:
@@ -211,30 +175,39 @@ def run_localize_camera(args: argparse.Namespace) -> int:
         with reading():
             check_ssim_strides(strides, width, height, "--strides", "a larger --width, or --no-rgb")
     if not args.json:
-        print(f"map: {scene.num_objects} objects, {scene.num_triangles} triangles; sequence: "
-              f"{seq.num_frames} frames of a {folder.format} recording ({len(folder.skipped)} "
-              f"skipped without a pose), {seq.camera.width}x{seq.camera.height} px, "
-              f"{seq.patch_shape[0]}x{seq.patch_shape[1]} patches, depth "
-              f"{'yes' if seq.depth is not None else 'no'}")  # fmt: skip
+        print(
+            f"map: {scene.num_objects} objects, {scene.num_triangles} triangles; sequence: "
+            f"{seq.num_frames} frames of a {folder.format} recording ({len(folder.skipped)} "
+            f"skipped without a pose), {seq.camera.width}x{seq.camera.height} px, "
+            f"{seq.patch_shape[0]}x{seq.patch_shape[1]} patches, depth "
+            f"{'yes' if seq.depth is not None else 'no'}"
+        )
     key, progress = jax.random.key(args.seed), not args.no_progress
     if args.online:
         with tqdm(total=seq.num_frames, unit="frame", disable=not progress) as bar:
-            result = online.filter_sequence(key, scene, seq, config,
-                                            progress=lambda t: bar.update())  # fmt: skip
+            result = online.filter_sequence(
+                key, scene, seq, config, progress=lambda t: bar.update()
+            )
     else:  # the rounds compile side by side (warm_up's threads); localize waits for them
         warm_up(key, scene, seq, config, progress=progress)
         result = localize(key, scene, seq, config, progress=progress)
     poses = np.asarray(result.pose if args.online else result.poses, np.float64)
     report: dict = {
-        "map": str(args.map), "sequence": str(args.seq_dir), "format": folder.format,
-        "frames": list(folder.frame_ids), "skipped": list(folder.skipped),
-        "mode": "online" if args.online else "offline", "poses": poses.tolist(),
+        "map": str(args.map),
+        "sequence": str(args.seq_dir),
+        "format": folder.format,
+        "frames": list(folder.frame_ids),
+        "skipped": list(folder.skipped),
+        "mode": "online" if args.online else "offline",
+        "poses": poses.tolist(),
         "localized": np.asarray(result.localized, bool).tolist(),
-    }  # fmt: skip
+    }
     if folder.poses_gt is not None:
         report.update(summarize_sequence(poses, folder.poses_gt))
     if args.refine:
-        report["refined"] = _refine_last(scene, folder, poses[-1])
+        truth = folder.poses_gt is not None
+        T_gt = camera_pose_matrices(folder.poses_gt[-1:], folder.tilt_gt[-1:])[0] if truth else None
+        report["refined"] = refinement_record(scene, seq, poses[-1], T_gt)
     if args.poses_out is not None:
         write_camera_poses(args.poses_out, folder, poses, args.pose_format)
         report["poses_out"] = str(args.poses_out)
@@ -242,8 +215,5 @@ def run_localize_camera(args: argparse.Namespace) -> int:
         report["figure"] = str(plot_rounds(result, folder.poses_gt, args.plot, scene=scene))
     if args.rerun is not None:
         report["rerun"] = str(write_rerun(args.rerun, scene, result, folder, folder.poses_gt))
-    if args.json:
-        print(json.dumps(report))
-    else:
-        _print_report(report)
+    print(json.dumps(report) if args.json else format_report(report))
     return 0

@@ -37,9 +37,9 @@ def add_parser(commands) -> None:
     add("--particles", type=positive_int, help="particle capacity (default SG2LocConfig.capacity)")
     add("--width", type=positive_int, help="image width, px (default SensorConfig.width)")
     add("--height", type=positive_int, help="image height, px (default SensorConfig.height)")
-    add_list(add, "--strides", positive_int, "20,8,4", "pixel stride of each coarse-to-fine "
-             "round, each casting at least SSIM's 7 x 7 rays (default SG2LocConfig.strides, each "
-             "lowered to the largest that fits the image)", metavar="S")  # fmt: skip
+    strides = "pixel stride of each coarse-to-fine round, each casting at least SSIM's 7 x 7 rays"
+    fit = "(default SG2LocConfig.strides, each lowered to the largest that fits the image)"
+    add_list(add, "--strides", positive_int, "20,8,4", f"{strides} {fit}", metavar="S")
     add("--out", type=Path, default=Path("jaxloc_demo.png"), help="figure (PNG)")
     add("--rerun", type=Path, metavar="F.rrd", help=RERUN_HELP)
 
@@ -92,8 +92,10 @@ def run_demo(args: argparse.Namespace) -> int:
     sensor = episode_config.sensor
     if args.strides is None and strides != SG2LocConfig.strides:
         shown, paper = (",".join(map(str, s)) for s in (strides, SG2LocConfig.strides))
-        print(f"strides {shown} (the paper's {paper}, lowered to fit a {sensor.width} x "
-              f"{sensor.height} image)")  # fmt: skip
+        print(
+            f"strides {shown} (the paper's {paper}, lowered to fit a {sensor.width} x "
+            f"{sensor.height} image)"
+        )
     start = time.perf_counter()
     room = indoor.make_room(args.seed, episode_config.room)
     scene = indoor.scene_graph(room)
@@ -107,10 +109,12 @@ def run_demo(args: argparse.Namespace) -> int:
     warm_up(key, scene, frame_shapes, config, progress=True)
     del frame_shapes  # 50 MB of zeros at 960 x 540
     episode = indoor.episode_in_room(room, room, args.seed, args.frames, episode_config)
-    print(f"room {episode.room.size[0]:.1f} x {episode.room.size[1]:.1f} m: "
-          f"{scene.num_objects} objects, {scene.num_triangles} triangles, map "
-          f"{scene.storage_mb():.2f} MB ({time.perf_counter() - start:.1f} s to "
-          "build)")  # fmt: skip
+    print(
+        f"room {episode.room.size[0]:.1f} x {episode.room.size[1]:.1f} m: "
+        f"{scene.num_objects} objects, {scene.num_triangles} triangles, map "
+        f"{scene.storage_mb():.2f} MB ({time.perf_counter() - start:.1f} s to "
+        "build)"
+    )
     camera = episode.sequence.camera
     grid = stride_grid(camera, min(10, strides[0]), *episode.sequence.patch_shape)
     num_views = min(3, args.frames)
@@ -120,8 +124,10 @@ def run_demo(args: argparse.Namespace) -> int:
     per_view = zip(views.object_id, views.depth, views.valid, strict=True)
     for t, (ids, depth, hit) in enumerate(per_view, start=1):
         seen, depth = np.sum(np.unique(ids) >= 0), depth[np.isfinite(depth)]
-        print(f"view {t}: {seen} objects visible, depth {depth.min():.2f}-{depth.max():.2f} m, "
-              f"{np.mean(hit):.0%} rays hit")  # fmt: skip
+        print(
+            f"view {t}: {seen} objects visible, depth {depth.min():.2f}-{depth.max():.2f} m, "
+            f"{np.mean(hit):.0%} rays hit"
+        )
     result = localize(key, scene, episode.sequence, config, progress=True)
     errors = summarize_sequence(np.asarray(result.poses), episode.poses_gt)
     localized = np.asarray(result.localized)
@@ -130,8 +136,10 @@ def run_demo(args: argparse.Namespace) -> int:
         verdict = "localized" if ok else "not localized"
         print(f"frame {t}: {verdict}, position error {p:.3f} m, rotation error {r:.2f} deg")
     summary = errors["last_frame"]
-    print(f"last frame: {summary['median_pos_m']:.3f} m, {summary['median_rot_deg']:.2f} deg; "
-          f"total {time.perf_counter() - start:.0f} s")  # fmt: skip
+    print(
+        f"last frame: {summary['median_pos_m']:.3f} m, {summary['median_rot_deg']:.2f} deg; "
+        f"total {time.perf_counter() - start:.0f} s"
+    )
     print(f"figure: {plot_rounds(result, episode.poses_gt, args.out, scene=scene)}")
     if args.rerun is not None:
         path = write_rerun(args.rerun, scene, result, episode.sequence, episode.poses_gt)

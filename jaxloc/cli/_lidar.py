@@ -83,15 +83,15 @@ def add_triplet_options(parser: argparse.ArgumentParser, scales: int | None = No
     """The localization settings (:func:`triplet_config`); None defaults are the library's."""
     group = parser.add_argument_group("localization settings (defaults: m2loc_config's)")
     add = group.add_argument
-    add("--scales", type=int, choices=(1, 2, 3), default=scales, help="M2Loc descriptor scales: "
-        "[0,20], (20,30], (30,40] m")  # fmt: skip
+    edges = "M2Loc descriptor scales: [0,20], (20,30], (30,40] m"
+    add("--scales", type=int, choices=(1, 2, 3), default=scales, help=edges)
     add("--tripletloc", action="store_true", help="TripletLoc's descriptor (edge lengths)")
     add("-k", type=positive_int, help="map matches per scan instance and scale")
     add("--threshold", type=positive_float, help="consistency threshold of the match graph, m")
     add("--min-clique", type=positive_int, help="add scales while the clique is smaller (T)")
     add("--no-rsn", action="store_true", help="ignore the road-normal prior")
-    add("--no-robust", action="store_true", help="M2Loc as published (m2loc_config(robust="
-        "False)): cliques may join associations of one vertex, no clique hypotheses")  # fmt: skip
+    published = "cliques may join associations of one vertex, no clique hypotheses"
+    add("--no-robust", action="store_true", help=f"M2Loc as published (robust=False): {published}")
 
 
 def _matching_options(args: argparse.Namespace) -> dict:
@@ -157,8 +157,10 @@ def open_map(path: Path, args: argparse.Namespace, recording=None):
 
     start = time.perf_counter()
     if path.is_file() and (args.scales is not None or args.tripletloc):
-        raise InputError(f"{path}: a saved map keeps the descriptors it was described with; drop "
-                         "--scales / --tripletloc (or describe the map folder again)")  # fmt: skip
+        raise InputError(
+            f"{path}: a saved map keeps the descriptors it was described with; drop "
+            "--scales / --tripletloc (or describe the map folder again)"
+        )
     with reading(), notes_of_small_maps(args.command, str(path)):
         if path.is_file():
             triplet_map = open_triplet_map(path, replace=_matching_options(args))
@@ -192,9 +194,13 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
     accumulate, drive_config = drive_options(args)  # checked by check_localize_lidar
     with reading():
         recording = io.open_lidar_recording(
-            args.scans, layout=args.format, sensor=args.sensor, every=args.every, gt=args.gt,
+            args.scans,
+            layout=args.format,
+            sensor=args.sensor,
+            every=args.every,
+            gt=args.gt,
             **BAG_OPTIONS.values(args),
-        )  # fmt: skip
+        )
         drive = recording if args.odometry is None else recording.with_poses(args.odometry)
     odometry = given(odometry=recording.odometry if args.odometry is None else None)
     note_sequences(args, recording.sequences)
@@ -203,43 +209,51 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
         io.save_triplet_map(triplet_map, args.save_map)
     num_vertices = int(triplet_map.points.shape[0])
     say = (lambda _: None) if args.json else print
-    say(f"map {args.map}: {num_vertices} instances, "
+    say(
+        f"map {args.map}: {num_vertices} instances, "
         f"{'with' if triplet_map.has_rsn else 'without'} road normals, "
-        f"{'loaded' if args.map.is_file() else 'described'} in {build_s:.1f} s")  # fmt: skip
+        f"{'loaded' if args.map.is_file() else 'described'} in {build_s:.1f} s"
+    )
     records = []
     bar = tqdm(total=len(recording), unit="scan", disable=len(recording) < 2 or args.no_progress)
 
     def progress(index: int, step) -> None:
         stamp, judged = recording.stamps[index], recording.has_pose[index]
-        records.append({
-            "scan": recording.name(index),
-            **({} if stamp is None else {"timestamp_ns": int(stamp)}),
-            **evaluation.step_record(step, recording.poses[index] if judged else None, args.track),
-        })  # fmt: skip
+        record = {"scan": recording.name(index)}
+        record |= {} if stamp is None else {"timestamp_ns": int(stamp)}
+        T_gt = recording.poses[index] if judged else None
+        records.append(record | evaluation.step_record(step, T_gt, args.track))
         bar.update()
         if not args.json:
             tqdm.write(evaluation.format_record(records[-1]))
 
     with reading(), bar:
         result = localize_drive(
-            triplet_map, drive, accumulate=accumulate, track=args.track, config=drive_config,
-            progress=progress, **odometry,
-        )  # fmt: skip
+            triplet_map,
+            drive,
+            accumulate=accumulate,
+            track=args.track,
+            config=drive_config,
+            progress=progress,
+            **odometry,
+        )
     if args.poses_out is not None:
         out = (args.poses_out, recording, result.poses, result.valid, args.pose_format)
         if left_out := io.write_lidar_poses(*out):
-            note(args.command, f"{args.poses_out}: {left_out} scan(s) that did not localize left "
-                 "out")  # fmt: skip
+            note(
+                args.command, f"{args.poses_out}: {left_out} scan(s) that did not localize left out"
+            )
     if args.rerun is not None:
         seconds = None if recording.timestamps is None else recording.timestamps / 1e9
-        io.write_drive_rerun(args.rerun, triplet_map, result, recording.poses,
-                             has_gt=recording.has_pose, timestamps=seconds)  # fmt: skip
+        drive_run = (args.rerun, triplet_map, result, recording.poses)
+        io.write_drive_rerun(*drive_run, has_gt=recording.has_pose, timestamps=seconds)
         say(f"rerun: {args.rerun}")
     summary = {"map": str(args.map), "map_instances": num_vertices, "map_build_s": build_s}
     judged = np.asarray(recording.has_pose, bool)
     if judged.any():
-        success = evaluation.localization_success(result.poses[judged], recording.poses[judged],
-                                                  result.valid[judged])  # fmt: skip
+        success = evaluation.localization_success(
+            result.poses[judged], recording.poses[judged], result.valid[judged]
+        )
         summary["success_rate"] = float(np.mean(success))
         rte, rre = evaluation.SUCCESS_RTE_M, evaluation.SUCCESS_RRE_DEG
         say(f"success (valid, RTE < {rte} m, RRE < {rre} deg): {success.sum()}/{len(success)}")

@@ -54,8 +54,9 @@ def add_parser(commands) -> None:
     build = command(commands, "build-lidar-map", DESCRIPTION, EPILOG)
     build.add_argument("seq_dir", type=Path, metavar="SEQ_DIR", help="labelled sequence folder")
     build.add_argument("out_dir", type=Path, metavar="OUT_DIR", help="map folder to write")
-    build.add_argument("--every", type=positive_int, help="use every K-th scan (default "
-                       "MapBuildConfig.every)")  # fmt: skip
+    build.add_argument(
+        "--every", type=positive_int, help="use every K-th scan (default MapBuildConfig.every)"
+    )
     build.add_argument("--save-map", type=Path, metavar="FILE", help="also save it described")
     build.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_sequence_options(build)
@@ -85,17 +86,20 @@ def run_build_lidar_map(args: argparse.Namespace) -> int:
     triplet_map = None
     if args.save_map is not None:  # describe before writing anything: a bad map writes nothing
         config = triplet_config(args)
-        triplet_map = describe_map(instances.points, instances.labels, config, normals, "built",
-                                   args.command)  # fmt: skip
+        triplet_map = describe_map(
+            instances.points, instances.labels, config, normals, "built", args.command
+        )
     write_instance_maps(args.out_dir, instances, normals)
     if triplet_map is not None:
         save_triplet_map(triplet_map, args.save_map)
-    counts = ", ".join(f"{int(np.sum(instances.labels == c))} x {c}"
-                       for c in sorted(set(instances.labels)))  # fmt: skip
+    counts = ", ".join(
+        f"{int(np.sum(instances.labels == c))} x {c}" for c in sorted(set(instances.labels))
+    )
     layout = sequence.layout + (f", {sequence.sensor}" if sequence.sensor else "")
-    print(f"{args.seq_dir} ({layout}): {used} of {len(sequence.bins)} scans used -> "
-          f"{len(instances.points)} instances ({counts}), {len(normals.xy)} road-normal cells, "
-          f"in {time.perf_counter() - start:.1f} s; wrote {args.out_dir}/instances/*.txt and "
-          f"{args.out_dir}/RSN/road_normal.txt"
-          + (f" and {args.save_map}" if args.save_map else ""))  # fmt: skip
+    print(
+        f"{args.seq_dir} ({layout}): {used} of {len(sequence.bins)} scans used -> "
+        f"{len(instances.points)} instances ({counts}), {len(normals.xy)} road-normal cells, "
+        f"in {time.perf_counter() - start:.1f} s; wrote {args.out_dir}/instances/*.txt and "
+        f"{args.out_dir}/RSN/road_normal.txt" + (f" and {args.save_map}" if args.save_map else "")
+    )
     return 0

@@ -21,39 +21,42 @@ geometry_msgs/PoseStamped per valid scan on /jaxloc/pose and a std_msgs/Bool ver
 /jaxloc/valid, stamped as the scan, for Foxglove; rosbag2, the same as a new ROS 2 bag folder."""
 
 #: A bag SCAN's topics and fields (open_lidar_recording's keywords): flag, metavar, help.
-BAG_OPTIONS = OptionTable((
-    ("--topic", "TOPIC", "the labelled sensor_msgs/PointCloud2 topic (default: the only one)"),
-    ("--odometry-topic", "TOPIC", "a pose topic, /tf or none (default: one Odometry, else /tf)"),
-    ("--gt-topic", "TOPIC", "a pose topic of ground-truth T_map_scan (or --gt FILE)"),
-    ("--label-field", "FIELD", "the clouds' class field (default label)"),
-    ("--instance-field", "FIELD", "their instance field (default: a 32-bit label's high bits)"),
-))  # fmt: skip
+BAG_OPTIONS = OptionTable(
+    (
+        ("--topic", "TOPIC", "the labelled sensor_msgs/PointCloud2 topic (default: the only one)"),
+        ("--odometry-topic", "TOPIC", "pose topic, /tf or none (default: sole Odometry, else /tf)"),
+        ("--gt-topic", "TOPIC", "a pose topic of ground-truth T_map_scan (or --gt FILE)"),
+        ("--label-field", "FIELD", "the clouds' class field (default label)"),
+        ("--instance-field", "FIELD", "their instance field (default: a 32-bit label's high bits)"),
+    )
+)
 
 
 def add_sequence_options(parser: argparse.ArgumentParser) -> None:
     """``--format`` and ``--sensor``: how a sequence folder is read."""
     layouts = ("semantickitti", "plain", "helipr")  # jaxloc.io.lidar_sequence.LAYOUTS
     parser.add_argument("--format", choices=layouts, help="sequence layout (default: detected)")
-    parser.add_argument("--sensor", help="HeLiPR scan folder LiDAR/<sensor>/ (default: the only "
-                        "one, else Ouster)")  # fmt: skip
+    parser.add_argument(
+        "--sensor", help="HeLiPR scan folder LiDAR/<sensor>/ (default: the only one, else Ouster)"
+    )
 
 
 def add_drive_options(parser: argparse.ArgumentParser) -> None:
     """How the scans of a drive are localized (:func:`drive_options`), and ``--poses-out``."""
     add = parser.add_argument
-    add("--accumulate", type=positive_int, default=1, metavar="K", help="localize each scan with "
-        "the last K scans fused through odometry, more while they hold few instances")  # fmt: skip
-    add("--window-instances", type=count, metavar="N", help="with --accumulate K: grow the window "
-        "while it holds fewer than N instances (default DriveConfig.min_instances)")  # fmt: skip
-    add("--accumulate-max", type=positive_int, metavar="M", help="with --accumulate K: the most "
-        "scans a window grows to, M >= K (default 2K)")  # fmt: skip
-    add("--odometry", type=Path, metavar="FILE", help="odometry for --accumulate and --track, any "
-        "format --gt takes (default: a bag's odometry, else the poses)")  # fmt: skip
-    add("--track", action="store_true", help="after a verified pose, localize the next scans near "
-        "the odometry's prediction (milliseconds), globally when that fails")  # fmt: skip
+    fuse = "localize each scan with the last K scans fused through odometry (more: few instances)"
+    add("--accumulate", type=positive_int, default=1, metavar="K", help=fuse)
+    grow = "with --accumulate K: grow the window while it holds fewer than N instances"
+    add("--window-instances", type=count, metavar="N", help=f"{grow} (default DriveConfig's)")
+    most = "with --accumulate K: the most scans a window grows to, M >= K (default 2K)"
+    add("--accumulate-max", type=positive_int, metavar="M", help=most)
+    odometry = "for --accumulate and --track, as --gt (default: a bag's odometry, else the poses)"
+    add("--odometry", type=Path, metavar="FILE", help=odometry)
+    track = "after a verified pose, localize the next scans near the odometry's prediction (ms)"
+    add("--track", action="store_true", help=f"{track}, globally when that fails")
     add("--poses-out", type=Path, metavar="FILE", help="estimated poses (see below)")
-    add("--pose-format", choices=("tum", "kitti", "mcap", "rosbag2"), default="tum",
-        help="of --poses-out")  # fmt: skip
+    formats = ("tum", "kitti", "mcap", "rosbag2")
+    add("--pose-format", choices=formats, default="tum", help="of --poses-out")
 
 
 def note_sequences(args: argparse.Namespace, sequences: Sequence) -> None:
@@ -61,11 +64,16 @@ def note_sequences(args: argparse.Namespace, sequences: Sequence) -> None:
     sequence whose scans without a pose were left out."""
     for seq in sequences:
         if seq.layout == "helipr" and args.sensor is None and len(seq.sensors) > 1:
-            note(args.command, f"{seq.root}: scans of {list(seq.sensors)}; reading {seq.sensor} "
-                 "(--sensor)")  # fmt: skip
+            note(
+                args.command,
+                f"{seq.root}: scans of {list(seq.sensors)}; reading {seq.sensor} (--sensor)",
+            )
         if seq.skipped:
-            note(args.command, f"{seq.root}: {len(seq.skipped)} scan(s) without a pose at their "
-                 f"time left out (first: {seq.skipped[0].name})")  # fmt: skip
+            note(
+                args.command,
+                f"{seq.root}: {len(seq.skipped)} scan(s) without a pose at their "
+                f"time left out (first: {seq.skipped[0].name})",
+            )
 
 
 def open_sequence(path: Path, args: argparse.Namespace):

@@ -34,8 +34,9 @@ class Formatter(argparse.RawDescriptionHelpFormatter):
 def command(commands, name: str, description: str, epilog: str | None = None) -> Parser:
     """The subcommand ``name`` of ``commands``; its help is the first line of ``description``."""
     help = description.split("\n")[0].rstrip(".")
-    return commands.add_parser(name, help=help, description=description, epilog=epilog,
-                               formatter_class=Formatter)  # fmt: skip
+    return commands.add_parser(
+        name, help=help, description=description, epilog=epilog, formatter_class=Formatter
+    )
 
 
 def given(**options) -> dict:
@@ -85,13 +86,19 @@ positive_int = _checker(
 count = _checker("count", int, lambda v: v >= 0, "an integer >= 0")
 seed = _checker("seed", int, lambda v: 0 <= v < 2**32, "a seed from 0 to 2**32 - 1")
 positive_float = _checker(
-    "positive_float", float, lambda v: math.isfinite(v) and v > 0, "a finite number > 0",
+    "positive_float",
+    float,
+    lambda v: math.isfinite(v) and v > 0,
+    "a finite number > 0",
     "finite numbers > 0",
-)  # fmt: skip
+)
 nonnegative_float = _checker(
-    "nonnegative_float", float, lambda v: math.isfinite(v) and v >= 0, "a finite number >= 0",
+    "nonnegative_float",
+    float,
+    lambda v: math.isfinite(v) and v >= 0,
+    "a finite number >= 0",
     "finite numbers >= 0",
-)  # fmt: skip
+)
 
 
 def at_least(minimum: int) -> Callable:
@@ -133,5 +140,11 @@ def add_list(add: Callable, name: str, item: Callable, example: str, help: str, 
     """A list option ``name`` (``add``: a parser's ``add_argument``): ``item`` values separated by
     spaces or commas (``example``, e.g. ``20,8,4``), as a tuple (None when not given)."""
     spaced = example.replace(",", " ")
-    add(name, type=list_of(item, example), nargs="+", action=_Flatten,
-        help=f"{help}; '{spaced}' or '{example}'", **kwargs)  # fmt: skip
+    add(
+        name,
+        type=list_of(item, example),
+        nargs="+",
+        action=_Flatten,
+        help=f"{help}; '{spaced}' or '{example}'",
+        **kwargs,
+    )

@@ -74,9 +74,11 @@ def run_build_scene_graph(args: argparse.Namespace) -> int:
         classes = class_embeddings(recon, table)
     io.save_scene(scene, args.out, classes)
     labels = np.asarray(scene.labels)[: scene.num_objects]
-    print(f"{scene.num_objects} objects ({len(np.unique(labels))} classes), "
-          f"{scene.num_triangles} triangles, {scene.storage_mb():.3f} MB -> "
-          f"{args.out}")  # fmt: skip
+    print(
+        f"{scene.num_objects} objects ({len(np.unique(labels))} classes), "
+        f"{scene.num_triangles} triangles, {scene.storage_mb():.3f} MB -> "
+        f"{args.out}"
+    )
     if table is None:
         classes = " ".join(str(c) for c in onehot_classes(labels))
         print(f"embeddings: one-hot per class, dimension i = class id {classes}")

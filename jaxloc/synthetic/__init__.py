@@ -6,4 +6,6 @@
   normals) and scan-like queries cut from them.
 * :mod:`~jaxloc.synthetic.lidar_scans`: labelled LiDAR scans of an outdoor world, written in the
   SemanticKITTI layout.
+* :mod:`~jaxloc.synthetic.timing`: speed checks of raycasting, the SG2Loc filter and M2Loc
+  queries on these worlds (what ``jaxloc bench`` prints).
 """

@@ -1,0 +1,52 @@
+"""The record of a camera localization run as ``jaxloc localize-camera`` reports it: the
+refinement of the last frame as JSON-ready values, and the text of a whole report."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxloc.metrics import pose_errors
+
+
+def refinement_record(scene, sequence, last_pose, T_gt: np.ndarray | None = None) -> dict:
+    """:func:`jaxloc.sg2loc.refine.refine` of the last frame of ``sequence`` from ``last_pose``
+    (x, y, z m, yaw rad) as ``ok``, ``status`` and ``T_world_cam`` (4 x 4 list); with the
+    ground-truth ``T_gt`` (4, 4) also ``position_error_m`` (m) and ``rotation_error_deg`` (deg)."""
+    from jaxloc.sg2loc.refine import refine
+
+    refined = refine(scene, sequence, last_pose)
+    T = np.asarray(refined.pose.as_matrix(), np.float64)
+    out = {"ok": bool(refined.ok), "status": int(refined.status), "T_world_cam": T.tolist()}
+    if T_gt is not None:
+        out["position_error_m"], out["rotation_error_deg"] = map(float, pose_errors(T, T_gt))
+    return out
+
+
+def format_report(report: dict) -> str:
+    """The text of a run's JSON ``report`` (``frames``, ``poses`` (x, y, z m, yaw rad),
+    ``localized``; optionally the per-frame errors, the ``all_frames`` / ``last_frame`` summaries
+    of :func:`jaxloc.metrics.summarize_sequence`, ``refined`` (:func:`refinement_record`),
+    ``figure`` and ``rerun``): a line per frame (yaw in deg), the summaries, the refinement."""
+    lines = []
+    for t, number in enumerate(report["frames"]):
+        (x, y, z, yaw), verdict = report["poses"][t], report["localized"][t]
+        line = f"frame {number}: {'localized' if verdict else 'NOT localized'}, x {x:.3f} y "
+        line += f"{y:.3f} z {z:.3f} m, yaw {np.degrees(yaw):.1f} deg"
+        if "position_error_m" in report:
+            line += f" | error {report['position_error_m'][t]:.3f} m, "
+            line += f"{report['rotation_error_deg'][t]:.2f} deg"
+        lines.append(line)
+    lines.append(f"localized: {sum(report['localized'])} of {len(report['frames'])} frames")
+    for name in ("all_frames", "last_frame"):
+        if name in report:
+            values = ", ".join(f"{k} {v:.3f}" for k, v in report[name].items())
+            lines.append(f"{name.replace('_', ' ')}: {values}")
+    if refined := report.get("refined"):
+        line = f"refined last frame: ok {refined['ok']} (status {refined['status']})"
+        if "position_error_m" in refined:
+            line += f", error {refined['position_error_m']:.3f} m, "
+            line += f"{refined['rotation_error_deg']:.2f} deg"
+        matrix = np.array2string(np.asarray(refined["T_world_cam"]), precision=4)
+        lines.append(f"{line}\nT_world_cam =\n{matrix}")
+    lines += [f"{key}: {report[key]}" for key in ("figure", "rerun") if key in report]
+    return "\n".join(lines)
