@@ -152,42 +152,22 @@ def open_camera_recording(
         dim = _embedding_dim(Path(map_file))
         with_labels = labels_dir is not None or label_topic is not None
         classes = load_class_embeddings(map_file) if with_labels else None
+    common = {
+        "embedding_dim": dim,
+        "embeddings_dir": embeddings_dir,
+        "classes": classes,
+        "label_map": label_map,
+        "patch_shape": tuple(patch_shape),
+        "transform": transform,
+        "odometry": odometry,
+        "step": step,
+        "max_frames": max_frames,
+        "use_depth": use_depth,
+        "use_rgb": use_rgb,
+    }
     if bag:
-        return read_bag_camera_sequence(
-            path,
-            width,
-            height,
-            **bag_options,
-            odometry=odometry,
-            embeddings_dir=embeddings_dir,
-            embedding_dim=dim,
-            classes=classes,
-            label_map=label_map,
-            patch_shape=tuple(patch_shape),
-            transform=transform,
-            step=step,
-            max_frames=max_frames,
-            use_depth=use_depth,
-            use_rgb=use_rgb,
-        )
-    return read_camera_sequence(
-        path,
-        format,
-        width,
-        height,
-        embedding_dim=dim,
-        embeddings_dir=embeddings_dir,
-        labels_dir=labels_dir,
-        classes=classes,
-        label_map=label_map,
-        patch_shape=tuple(patch_shape),
-        transform=transform,
-        odometry=odometry,
-        step=step,
-        max_frames=max_frames,
-        use_depth=use_depth,
-        use_rgb=use_rgb,
-    )
+        return read_bag_camera_sequence(path, width, height, **bag_options, **common)
+    return read_camera_sequence(path, format, width, height, labels_dir=labels_dir, **common)
 
 
 def camera_pose_matrices(poses: np.ndarray, tilt: np.ndarray) -> np.ndarray:
