@@ -27,6 +27,11 @@ size, labelled as an estimate.
     python benchmarks/filter_step.py --particles 200 --frames 2        # a quick run
     python benchmarks/filter_step.py --cases stride --strides 20       # the coarse pass only
     python benchmarks/filter_step.py --engine jax --chunk 0            # pure JAX, all slots at once
+    python benchmarks/filter_step.py --baseline /tmp/jaxloc-base       # beside an older checkout
+
+``--baseline`` runs every case a second time with an older jaxloc checkout first on the child's
+``PYTHONPATH`` (``git worktree add /tmp/jaxloc-base <commit>``), alternating the two, and labels
+each row with its tree.
 """
 
 from __future__ import annotations
@@ -76,6 +81,9 @@ def parse_args(argv=None) -> argparse.Namespace:
         type=int,
         default=None,
         help="KLDConfig.min_particles (default 500; --particles keeps every slot active)",
+    )
+    parser.add_argument(
+        "--baseline", type=Path, default=None, help="an older jaxloc checkout to run beside"
     )
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--data", default=None, help=argparse.SUPPRESS)
@@ -291,9 +299,43 @@ def full_rays(case: str) -> int:
 
     if case.startswith("patch"):
         return 144
-    stride = int(case.partition(":")[2])
+    stride = int(case.partition(":")[2].split()[0])
     width, height = FULL_SIZE
     return math.ceil((width - stride // 2) / stride) * math.ceil((height - stride // 2) / stride)
+
+
+def total_row(args, results: list[dict], suffix: str, reduced: bool) -> list[str]:
+    """The "all rounds" row of one tree's stride cases (none with fewer than two)."""
+    stride_cases = [r for r in results if r["case"].startswith("stride")]
+    if len(stride_cases) < 2:
+        return []
+    total = dict.fromkeys(("compile_wall", "compile_cpu", "wall", "cpu", "estimate", "peer"), 0.0)
+    for result in stride_cases:
+        frame_wall = mean(result["frame_wall"])
+        total["compile_wall"] += result["compile_wall"]
+        total["compile_cpu"] += result["compile_cpu"]
+        total["wall"] += frame_wall
+        total["cpu"] += mean(result["frame_cpu"])
+        total["estimate"] += frame_wall * scale_to_full(
+            args, result["rays_per_particle"], full_rays(result["case"])
+        )
+        total["peer"] += result["peer_wall"]
+    row = [
+        "all rounds (" + args.strides.replace(",", ", ") + ")" + suffix,
+        "-",
+        str(args.particles),
+        f"{total['compile_wall']:.1f}",
+        f"{total['compile_cpu']:.1f}",
+        f"{total['wall']:.3f}",
+        f"{total['cpu']:.3f}",
+        f"{max(r['peak_rss_mib'] for r in stride_cases):.0f}",
+        "-",
+        f"{total['peer']:.3f}",
+        f"{total['wall'] / total['peer']:.2f}",
+    ]
+    if reduced:
+        row.append(f"{total['estimate']:.1f}")
+    return ["| " + " | ".join(row) + " |"]
 
 
 def report(args, data_info: dict, results: list[dict]) -> str:
@@ -314,8 +356,6 @@ def report(args, data_info: dict, results: list[dict]) -> str:
     if reduced:
         header.append("ESTIMATE full size s/frame wall (linear scaling)")
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    total = dict.fromkeys(("compile_wall", "compile_cpu", "wall", "cpu", "estimate", "peer"), 0.0)
-    strides = [int(s) for s in args.strides.split(",")]
     for result in results:
         frame_wall, frame_cpu = mean(result["frame_wall"]), mean(result["frame_cpu"])
         estimate = frame_wall * scale_to_full(
@@ -338,31 +378,9 @@ def report(args, data_info: dict, results: list[dict]) -> str:
         if reduced:
             row.append(f"{estimate:.1f}")
         lines.append("| " + " | ".join(row) + " |")
-        if result["case"].startswith("stride"):
-            total["compile_wall"] += result["compile_wall"]
-            total["compile_cpu"] += result["compile_cpu"]
-            total["wall"] += frame_wall
-            total["cpu"] += frame_cpu
-            total["estimate"] += estimate
-            total["peer"] += result["peer_wall"]
-    stride_cases = [r for r in results if r["case"].startswith("stride")]
-    if len(stride_cases) > 1:
-        row = [
-            "all rounds (" + ", ".join(str(s) for s in strides) + ")",
-            "-",
-            str(args.particles),
-            f"{total['compile_wall']:.1f}",
-            f"{total['compile_cpu']:.1f}",
-            f"{total['wall']:.3f}",
-            f"{total['cpu']:.3f}",
-            f"{max(r['peak_rss_mib'] for r in stride_cases):.0f}",
-            "-",
-            f"{total['peer']:.3f}",
-            f"{total['wall'] / total['peer']:.2f}",
-        ]
-        if reduced:
-            row.append(f"{total['estimate']:.1f}")
-        lines.append("| " + " | ".join(row) + " |")
+    for suffix in ("", " (baseline)"):
+        tree = [r for r in results if r["case"].endswith(" (baseline)") == bool(suffix)]
+        lines += total_row(args, tree, suffix, reduced)
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     notes = [
         "",
@@ -414,7 +432,8 @@ def main(argv=None) -> None:
         data_info = make_data(args, Path(folder))
         print(f"episode built in {data_info['seconds']:.1f} s", flush=True)
         results = []
-        for case in cases:
+        trees = [None] if args.baseline is None else [None, args.baseline.resolve()]
+        for case, tree in ((c, t) for c in cases for t in trees):
             command = [sys.executable, __file__, "--child", case, "--data", folder]
             for name in ("particles", "frames", "width", "height", "strides", "seed", "engine"):
                 command += [f"--{name}", str(getattr(args, name))]
@@ -422,15 +441,22 @@ def main(argv=None) -> None:
                 command += ["--chunk", str(args.chunk)]
             if args.min_particles is not None:
                 command += ["--min-particles", str(args.min_particles)]
-            output = subprocess.run(command, capture_output=True, text=True, check=False)
+            env = dict(os.environ)
+            if tree is not None:
+                env["PYTHONPATH"] = os.pathsep.join(
+                    filter(None, [str(tree), env.get("PYTHONPATH")])
+                )
+            output = subprocess.run(command, capture_output=True, text=True, check=False, env=env)
             lines = [x for x in output.stdout.splitlines() if x.startswith("RESULT ")]
             if output.returncode != 0 or not lines:
                 sys.stderr.write(output.stderr[-4000:])
                 raise SystemExit(f"case {case} failed (exit {output.returncode})")
             result = json.loads(lines[-1][len("RESULT ") :])
+            if tree is not None:
+                result["case"] += " (baseline)"
             results.append(result)
             print(
-                f"{case}: compile {result['compile_wall']:.1f} s, frames "
+                f"{result['case']}: compile {result['compile_wall']:.1f} s, frames "
                 + ", ".join(f"{w:.2f}" for w in result["frame_wall"])
                 + " s",
                 flush=True,

@@ -175,6 +175,8 @@ def test_localize_camera_end_to_end(built, export_run, capsys):
     flags = [line.split(": ", 1)[1].startswith("localized") for line in lines]
     assert flags == report["localized"] and report["mode"] == "offline"
     assert f"localized: {sum(flags)} of {len(FRAMES)} frames" in out
+    confidences = [float(re.search(r"confidence ([\d.]+)", line)[1]) for line in lines]
+    np.testing.assert_allclose(confidences, report["confidence"], atol=0.006)
     assert "last frame: " in out and "R@0.25m,10deg" in out
     assert "refined last frame: ok" in out and "T_world_cam =" in out
 
@@ -364,3 +366,4 @@ def test_localize_camera_online_is_the_library_stream(built, capsys):
     )
     np.testing.assert_allclose(report["poses"], expected.pose, atol=1e-6)
     assert report["localized"] == expected.localized.tolist()
+    np.testing.assert_allclose(report["confidence"], expected.verdict.confidence, atol=1e-4)

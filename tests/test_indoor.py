@@ -249,6 +249,32 @@ def test_depth_and_rgb_noise_match_the_config(episode):
     assert np.std(np.log(gain)) > 0.02  # exposure changes from frame to frame
 
 
+def test_kinect_depth_model_noise_range_and_edges():
+    """The "kinect" model: axial noise 0.0012 + 0.0019 (z - 0.4)^2 m, nothing beyond 4.5 m or
+    beside a depth edge, blob holes at the configured rate on top."""
+    rng = np.random.default_rng(0)
+    depth = np.tile(np.linspace(1.0, 6.0, 400, dtype=np.float32), (60, 300, 1))  # (60, 300, 400)
+    depth[:, 150:, :] *= np.float32(1.5)  # a depth edge between rows 149 and 150
+    depth[:, :5, :5] = np.inf  # sees nothing
+    noisy = frames.sensor_depth(rng, depth, 0.02, 0.0, "kinect")
+    valid = noisy > 0
+    assert not valid[:, 149:151].any()  # both sides of the edge
+    assert not valid[:, :5, :5].any()
+    assert not valid[depth > 4.5].any()
+    inside = (depth <= 4.5) & np.isfinite(depth)
+    inside[:, 149:151] = False
+    inside[:, :6, :6] = False  # a miss's neighbours are beside an edge too
+    assert valid[inside].all()
+    for z in (1.5, 3.0, 4.0):
+        near = inside & (np.abs(depth - z) < 0.05)
+        expected = 0.0012 + 0.0019 * (z - 0.4) ** 2
+        np.testing.assert_allclose((noisy - depth)[near].std(), expected, rtol=0.1)
+    holes = frames.sensor_depth(np.random.default_rng(1), depth, 0.02, 0.2, "kinect") == 0
+    assert 0.2 <= holes.mean(axis=(1, 2)).min() and holes.mean() < 0.2 + (~inside).mean()
+    with pytest.raises(ValueError, match="depth_model"):
+        SensorConfig(depth_model="tof")
+
+
 def test_ego_motion_noise_matches_the_config():
     poses = np.cumsum(np.random.default_rng(0).normal(0, 0.1, (2001, 4)), axis=0).astype(np.float32)
     noisy = frames.noisy_ego_motion(np.random.default_rng(1), poses, 0.02, np.deg2rad(1.0))

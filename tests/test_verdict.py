@@ -22,7 +22,15 @@ from jaxloc.metrics import yaw_pose_errors
 from jaxloc.sg2loc import localize
 from jaxloc.sg2loc._particles import ParticleState
 from jaxloc.sg2loc._scores import ObservationConfig, Scores, match_patches
-from jaxloc.sg2loc._verdict import VerdictConfig, best_semantic_score, judge, particle_spread
+from jaxloc.sg2loc._verdict import (
+    MASS_CLIP,
+    ConfidenceModel,
+    VerdictConfig,
+    best_semantic_score,
+    judge,
+    particle_spread,
+    posterior_mass,
+)
 from jaxloc.synthetic.indoor import make_episode, make_lookalike_episode
 
 
@@ -66,6 +74,21 @@ def test_best_semantic_score_is_the_score_of_the_predicted_view():
     np.testing.assert_allclose(float(best_semantic_score(match)), expected, rtol=1e-5)
 
 
+def test_posterior_mass_matches_numpy_with_wrapped_yaws():
+    state = random_state(3)
+    w = np.exp(np.asarray(state.log_weights, np.float64))
+    p = np.asarray(state.poses, np.float64)
+    estimate = np.array([2.1, 1.9, 2.0, -3.12])  # near the seam: +-3.1 rad are within 0.1
+    for radius, yaw in ((0.3, 0.1), (0.5, 0.01), (10.0, 0.1)):
+        dyaw = (p[:, 3] - estimate[3] + np.pi) % (2 * np.pi) - np.pi
+        near = (np.linalg.norm(p[:, :3] - estimate[:3], axis=1) <= radius) & (np.abs(dyaw) <= yaw)
+        expected = w[near & np.asarray(state.active)].sum()
+        for fn in (posterior_mass, jax.jit(posterior_mass)):
+            got = fn(state, jnp.asarray(estimate, jnp.float32), radius, yaw)
+            np.testing.assert_allclose(float(got), expected, rtol=1e-4, atol=1e-6)
+    assert float(posterior_mass(state, jnp.asarray(estimate, jnp.float32), 10.0, 0.1)) > 0.99
+
+
 def _judged(config, **scores):
     state = random_state(2)
     match = match_patches(jnp.eye(4, 8), jnp.eye(6, 8), jnp.ones(6, bool))
@@ -75,7 +98,10 @@ def _judged(config, **scores):
         color=jnp.float32(scores.get("color", 1.0)),
         log_likelihood=jnp.float32(0.0),
     )
-    return judge(state, best, match, ObservationConfig(), config, jnp.bool_(False))
+    estimate = jnp.asarray([2.0, 2.0, 2.0, 3.1], jnp.float32)
+    observation = ObservationConfig(sigma=0.4)
+    degenerate = jnp.bool_(scores.get("degenerate", False))
+    return judge(state, estimate, best, match, observation, config, degenerate, 300)
 
 
 def test_each_threshold_decides():
@@ -91,6 +117,9 @@ def test_each_threshold_decides():
     )
     assert bool(_judged(loose).localized)
     assert float(_judged(loose).semantic_fraction) == pytest.approx(1.0)
+    estimate = jnp.asarray([2.0, 2.0, 2.0, 3.1], jnp.float32)
+    mass = posterior_mass(random_state(2), estimate, loose.mass_radius, loose.mass_yaw)
+    assert float(_judged(loose).mass) == pytest.approx(float(mass))
     tightened = {
         "max_spread_xy": 0.9 * float(np.hypot(spread[0], spread[1])),
         "max_spread_z": 0.9 * float(spread[2]),
@@ -107,6 +136,45 @@ def test_each_threshold_decides():
     assert bool(jitted(loose)) and not bool(
         jitted(dataclasses.replace(loose, max_depth_deficit=0.1))
     )
+
+
+def test_confidence_is_the_logistic_model_of_the_evidence():
+    model = ConfidenceModel(
+        bias=-3.0,
+        sigma_weight=-0.5,
+        rays_weight=0.3,
+        particles_weight=0.2,
+        mass_weight=0.7,
+        semantic_weight=2.0,
+        depth_weight=4.0,
+    )
+    config = VerdictConfig(confidence=model)
+    verdict = _judged(config, semantic=1.6, depth=0.8)
+    mass = np.clip(float(verdict.mass), MASS_CLIP, 1 - MASS_CLIP)
+    known = -0.5 * np.log(0.4) + 0.3 * np.log(300) + 0.2 * np.log(64)  # sigma, rays, capacity
+    logit = -3.0 + known + 0.7 * np.log(mass / (1 - mass)) + 2.0 * 0.8 - 4.0 * 0.2
+    assert float(verdict.confidence) == pytest.approx(1 / (1 + np.exp(-logit)), rel=1e-5)
+    assert float(_judged(config, semantic=1.6, depth=0.8, degenerate=True).confidence) == 0.0
+    # it rises with the evidence, and the weights are traced: one compilation for every model
+    assert float(_judged(config, semantic=1.9, depth=0.8).confidence) > float(verdict.confidence)
+    assert float(_judged(config, semantic=1.6, depth=0.9).confidence) > float(verdict.confidence)
+    jitted = jax.jit(lambda c: _judged(c, semantic=1.6, depth=0.8).confidence)
+    other = VerdictConfig(confidence=ConfidenceModel(bias=1.0))
+    assert float(jitted(config)) == pytest.approx(float(verdict.confidence), rel=1e-5)
+    assert float(jitted(other)) == pytest.approx(1 / (1 + np.exp(-1.0)), rel=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("mass_weight", -1.0, "must be >= 0"),
+        ("bias", float("nan"), "must be finite"),
+        ("depth_weight", np.ones(2), "must be a scalar"),
+    ],
+)
+def test_confidence_model_refuses_nonsense(field, value, message):
+    with pytest.raises(ValueError, match=f"ConfidenceModel.{field} {message}"):
+        ConfidenceModel(**{field: value})
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +207,7 @@ def test_verdict_on_a_right_and_a_wrong_place(right_and_wrong):
     for name, result in (("right", located), ("wrong", fooled)):
         verdict = result.info.verdict
         print(f"\n{name}: flagged {np.asarray(result.localized)}")
-        for field in ("semantic_fraction", "depth_deficit", "color", "ess_fraction"):
+        for field in ("semantic_fraction", "depth_deficit", "ess_fraction", "mass", "confidence"):
             print(f"  {field} {np.round(np.asarray(getattr(verdict, field)), 3)}")
         print(f"  spread {np.round(np.asarray(verdict.spread), 3).tolist()}")
     print(f"right errors {np.round(pos, 3)} m {np.round(rot, 2)} deg")

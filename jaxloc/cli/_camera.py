@@ -39,7 +39,8 @@ embeddings with the map's class embeddings. --odometry (default odometry.txt bes
 lines "N m00 ... m33", camera-to-odometry, z up) gives the ego-motion and tilt.
 
 Per frame: the estimate (x, y, z m, yaw deg, the map's frame), the verdict (act on the estimate
-only when localized) and, with ground truth, the errors and recalls. --online: what a live camera
+only when localized), its confidence (the probability of being within 0.5 m and 10 deg) and, with
+ground truth, the errors and recalls. --online: what a live camera
 would have been told (jaxloc.sg2loc.online, one round at the first stride). --poses-out: for evo.
 """
 
@@ -192,6 +193,7 @@ def run_localize_camera(args: argparse.Namespace) -> int:
         warm_up(key, scene, seq, config, progress=progress)
         result = localize(key, scene, seq, config, progress=progress)
     poses = np.asarray(result.pose if args.online else result.poses, np.float64)
+    verdict = result.verdict if args.online else result.info.verdict
     report: dict = {
         "map": str(args.map),
         "sequence": str(args.seq_dir),
@@ -201,6 +203,7 @@ def run_localize_camera(args: argparse.Namespace) -> int:
         "mode": "online" if args.online else "offline",
         "poses": poses.tolist(),
         "localized": np.asarray(result.localized, bool).tolist(),
+        "confidence": np.round(np.asarray(verdict.confidence, np.float64), 4).tolist(),
     }
     if folder.poses_gt is not None:
         report.update(summarize_sequence(poses, folder.poses_gt))

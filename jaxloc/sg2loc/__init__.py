@@ -12,7 +12,8 @@ configuration, which :func:`localize` and the streaming filter derive from their
 particle sees: :func:`render`, :func:`render_batch`. The scores' settings:
 :class:`ObservationConfig` (and :func:`check_ssim_strides`, whether a stride leaves the colour
 score enough rays); KLD-sampling: :class:`KLDConfig` (:func:`kld_for_capacity`, the bounds for a
-particle capacity); the per-frame verdict: :class:`VerdictConfig`, :class:`Verdict`.
+particle capacity); the per-frame verdict: :class:`VerdictConfig`, :class:`Verdict` (its calibrated
+:class:`ConfidenceModel`).
 
 Around them: :mod:`~jaxloc.sg2loc.refine` (6-DoF pose refinement), :mod:`~jaxloc.sg2loc.learn`
 (learning the likelihood parameters), :mod:`~jaxloc.sg2loc.retrieval` (scene retrieval),
@@ -27,6 +28,7 @@ from jaxloc._lazy import lazy_exports, renamed_modules
 
 __all__ = [
     "PAPER_HEIGHTS",
+    "ConfidenceModel",
     "Frame",
     "FrameSequence",
     "KLDConfig",
@@ -82,7 +84,12 @@ if TYPE_CHECKING:  # where each public name comes from (jaxloc._lazy imports it 
     from jaxloc.sg2loc._resampling import KLDConfig, kld_for_capacity
     from jaxloc.sg2loc._scores import ObservationConfig, check_ssim_strides
     from jaxloc.sg2loc._sequence import FrameSequence
-    from jaxloc.sg2loc._verdict import Verdict, VerdictConfig, default_verdict
+    from jaxloc.sg2loc._verdict import (
+        ConfidenceModel,
+        Verdict,
+        VerdictConfig,
+        default_verdict,
+    )
 
 #: The stage modules of jaxloc 0.2, private now: ``import jaxloc.sg2loc.filter`` and
 #: ``jaxloc.sg2loc.filter`` still work, with a DeprecationWarning, for one more release.

@@ -152,6 +152,7 @@ class StepConfig(eqx.Module):
             self.inject_every,
             self.heights,
             self.verdict,
+            int(self.grid.uv.shape[0]),
         )
 
     def chunk_size(self, capacity: int) -> int:
@@ -385,7 +386,8 @@ def predict_step(
 
 class UpdateConfig(eqx.Module):
     """The part of :class:`StepConfig` that :func:`update_step` reads (no camera, no ray grid);
-    fields as in :class:`StepConfig`."""
+    fields as in :class:`StepConfig`, and ``num_rays``, the rays per particle of its grid (static,
+    for :attr:`~jaxloc.sg2loc.Verdict.confidence`)."""
 
     observation: ObservationConfig
     kld: KLDConfig
@@ -394,6 +396,7 @@ class UpdateConfig(eqx.Module):
     inject_every: int = eqx.field(static=True)
     heights: Array
     verdict: VerdictConfig
+    num_rays: int = eqx.field(static=True)
 
 
 def update_step(
@@ -414,7 +417,16 @@ def update_step(
     best_pose, best = mle(state)
     mean_pose = weighted_mean(state)
     best_scores = jax.tree.map(lambda a: a[best], scores)
-    verdict = judge(state, best_scores, match, config.observation, config.verdict, degenerate)
+    verdict = judge(
+        state,
+        best_pose,
+        best_scores,
+        match,
+        config.observation,
+        config.verdict,
+        degenerate,
+        config.num_rays,
+    )
 
     weighted = state
     state, kld_info = kld_resample(key_resample, state, config.kld)

@@ -24,13 +24,17 @@ def refinement_record(scene, sequence, last_pose, T_gt: np.ndarray | None = None
 
 def format_report(report: dict) -> str:
     """The text of a run's JSON ``report`` (``frames``, ``poses`` (x, y, z m, yaw rad),
-    ``localized``; optionally the per-frame errors, the ``all_frames`` / ``last_frame`` summaries
-    of :func:`jaxloc.metrics.summarize_sequence`, ``refined`` (:func:`refinement_record`),
-    ``figure`` and ``rerun``): a line per frame (yaw in deg), the summaries, the refinement."""
+    ``localized``; optionally ``confidence``, the per-frame errors, the ``all_frames`` /
+    ``last_frame`` summaries of :func:`jaxloc.metrics.summarize_sequence`, ``refined``
+    (:func:`refinement_record`), ``figure`` and ``rerun``): a line per frame (yaw in deg), the
+    summaries, the refinement."""
     lines = []
     for t, number in enumerate(report["frames"]):
         (x, y, z, yaw), verdict = report["poses"][t], report["localized"][t]
-        line = f"frame {number}: {'localized' if verdict else 'NOT localized'}, x {x:.3f} y "
+        line = f"frame {number}: {'localized' if verdict else 'NOT localized'}"
+        if "confidence" in report:
+            line += f" (confidence {report['confidence'][t]:.2f})"
+        line += f", x {x:.3f} y "
         line += f"{y:.3f} z {z:.3f} m, yaw {np.degrees(yaw):.1f} deg"
         if "position_error_m" in report:
             line += f" | error {report['position_error_m'][t]:.3f} m, "

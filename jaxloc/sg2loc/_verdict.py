@@ -32,6 +32,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -45,6 +46,76 @@ from jaxloc.sg2loc._scores import (
     ObservationConfig,
     PatchMatch,
     Scores,
+)
+
+#: The posterior mass is clipped to [MASS_CLIP, 1 - MASS_CLIP] before its logit.
+MASS_CLIP = 0.01
+_EVIDENCE_WEIGHTS = ("mass_weight", "semantic_weight", "depth_weight")
+_CONFIDENCE_FIELDS = ("bias", "sigma_weight", "rays_weight", "particles_weight")
+_CONFIDENCE_FIELDS += _EVIDENCE_WEIGHTS
+
+
+class ConfidenceModel(eqx.Module):
+    """The weights of :attr:`Verdict.confidence`, a logistic model of the estimate being within
+    0.5 m and 10 degrees of the truth (traced float32 scalars).
+
+    ``confidence = sigmoid(bias + sigma_weight * log(sigma) + rays_weight * log(rays) +
+    particles_weight * log(capacity) + mass_weight * logit(mass) + semantic_weight *
+    semantic_fraction - depth_weight * depth_deficit)`` (the depth term only where the filter
+    scores depth; 0 on a degenerate update): the evidence (:attr:`Verdict.mass` clipped to
+    [:data:`MASS_CLIP`, 1 - :data:`MASS_CLIP`], the semantic fraction, the depth deficit) with
+    weights >= 0, so that the confidence rises with each kind, shifted by what the step knows of
+    how sharp that evidence is: the likelihood width ``sigma``, the rays per particle of its grid
+    and the particle capacity. The defaults are :data:`CONFIDENCE_WITH_DEPTH`'s.
+    """
+
+    bias: Array = eqx.field(default=0.0, converter=as_float32)
+    sigma_weight: Array = eqx.field(default=0.0, converter=as_float32)
+    rays_weight: Array = eqx.field(default=0.0, converter=as_float32)
+    particles_weight: Array = eqx.field(default=0.0, converter=as_float32)
+    mass_weight: Array = eqx.field(default=0.0, converter=as_float32)
+    semantic_weight: Array = eqx.field(default=0.0, converter=as_float32)
+    depth_weight: Array = eqx.field(default=0.0, converter=as_float32)
+
+    def __check_init__(self):
+        for name in _CONFIDENCE_FIELDS:
+            value = getattr(self, name)
+            if jnp.shape(value) != ():
+                raise ValueError(f"ConfidenceModel.{name} must be a scalar, got {value!r}")
+            if isinstance(value, jax.core.Tracer):
+                continue
+            value = float(np.asarray(value))
+            if not np.isfinite(value):
+                raise ValueError(f"ConfidenceModel.{name} must be finite, got {value}")
+            if name in _EVIDENCE_WEIGHTS and not value >= 0:
+                raise ValueError(
+                    f"ConfidenceModel.{name} must be >= 0 (the confidence rises with the "
+                    f"evidence), got {value}"
+                )
+
+
+#: The confidence's weights for sequences with depth, fitted by logistic regression on 60
+#: synthetic development conditions (image sizes 160x90 to 960x540, strides, 1000 or 2500
+#: particles, sigma 0.2-1.0, camera heights within and beyond the configured ones, depth noise and
+#: holes, patch confusion, colour noise, mesh coarseness) with a look-alike wrong place each,
+#: offline and streaming (``experiments/sg2loc_verdict_conditions.py --fit dev``).
+CONFIDENCE_WITH_DEPTH = ConfidenceModel(
+    bias=-1.454,
+    sigma_weight=2.439,
+    rays_weight=0.162,
+    particles_weight=-0.424,
+    mass_weight=0.644,
+    semantic_weight=8.036,
+    depth_weight=6.834,
+)
+#: The weights for sequences without depth, fitted the same way on the runs without depth.
+CONFIDENCE_WITHOUT_DEPTH = ConfidenceModel(
+    bias=-5.026,
+    sigma_weight=0.691,
+    rays_weight=0.356,
+    particles_weight=-0.461,
+    mass_weight=0.257,
+    semantic_weight=8.259,
 )
 
 
@@ -63,6 +134,10 @@ class VerdictConfig(eqx.Module):
         max_depth_deficit: largest depth deficit of the MLE (the depth variant's best minus its
             score; metres of mean absolute error for ``"l1"``).
         min_color: smallest colour score of the MLE (mean SSIM for the ``"paper"`` variant).
+        mass_radius, mass_yaw: the posterior mass (:attr:`Verdict.mass`, not part of the rule)
+            counts the particles within this distance (metres, 3-D) and yaw (radians) of the
+            estimate.
+        confidence: the weights of :attr:`Verdict.confidence` (not part of the rule).
     """
 
     max_spread_xy: Array = eqx.field(default=np.inf, converter=as_float32)
@@ -72,6 +147,9 @@ class VerdictConfig(eqx.Module):
     min_semantic_fraction: Array = eqx.field(default=0.65, converter=as_float32)
     max_depth_deficit: Array = eqx.field(default=0.15, converter=as_float32)
     min_color: Array = eqx.field(default=0.0, converter=as_float32)
+    mass_radius: Array = eqx.field(default=0.25, converter=as_float32)
+    mass_yaw: Array = eqx.field(default=float(np.deg2rad(5.0)), converter=as_float32)
+    confidence: ConfidenceModel = CONFIDENCE_WITH_DEPTH
 
 
 #: The verdict's thresholds for sequences with depth, chosen on 20 development rooms and their
@@ -90,6 +168,7 @@ VERDICT_WITHOUT_DEPTH = VerdictConfig(
     max_ess_fraction=0.2,
     min_semantic_fraction=0.72,
     max_depth_deficit=np.inf,
+    confidence=CONFIDENCE_WITHOUT_DEPTH,
 )
 
 
@@ -111,6 +190,11 @@ class Verdict(NamedTuple):
         depth_deficit: float32 the MLE's depth score below its variant's best (0: no depth used
             or no valid sensor depth).
         color: float32 the MLE's colour score (the variant's best when colour is not used).
+        mass: float32 the posterior mass (the normalized weight of the active particles) within
+            ``mass_radius`` and ``mass_yaw`` of the estimate, in [0, 1]: how much of the filter's
+            belief agrees with its estimate (reported, not part of the rule).
+        confidence: float32 in [0, 1], the probability that the estimate is within 0.5 m and 10
+            degrees of the truth (:class:`ConfidenceModel`; reported, not part of the rule).
     """
 
     localized: Array
@@ -119,6 +203,8 @@ class Verdict(NamedTuple):
     semantic_fraction: Array
     depth_deficit: Array
     color: Array
+    mass: Array
+    confidence: Array
 
 
 def particle_spread(state: ParticleState) -> Array:
@@ -149,23 +235,69 @@ def best_semantic_score(match: PatchMatch) -> Array:
     return jnp.sum(jnp.where(found, cosine + 1.0, 0.0)) / num_patches
 
 
+def posterior_mass(state: ParticleState, estimate: Array, radius: Array, yaw: Array) -> Array:
+    """The normalized weight (float32, in [0, 1]) of the active particles within ``radius``
+    metres (3-D) and ``yaw`` radians (wrapped) of ``estimate`` (4,) = (x, y, z, yaw)."""
+    weights, _ = normalized_weights(state.log_weights, state.active)
+    offset = state.poses[:, :3] - estimate[:3]
+    near = (jnp.sum(offset**2, axis=1) <= radius**2) & (
+        jnp.abs(wrap_angle(state.poses[:, 3] - estimate[3])) <= yaw
+    )
+    return jnp.clip(jnp.sum(jnp.where(near & state.active, weights, 0.0)), 0.0, 1.0)
+
+
+def confidence_logit(
+    evidence: tuple[Array, Array, Array],
+    known: tuple[Array, Array, Array],
+    model: ConfidenceModel,
+    use_depth: bool,
+) -> Array:
+    """The logit of :attr:`Verdict.confidence` (float32; see :class:`ConfidenceModel`).
+
+    Args:
+        evidence: ``(mass, semantic_fraction, depth_deficit)``.
+        known: ``(sigma, rays, capacity)``: the likelihood width, the rays per particle and the
+            particle capacity (positive).
+        model: the weights.
+        use_depth: whether the depth term enters.
+
+    Works on arrays of any shape (the terms broadcast).
+    """
+    mass, semantic_fraction, depth_deficit = evidence
+    sigma, rays, capacity = (jnp.asarray(v, jnp.float32) for v in known)
+    clipped = jnp.clip(mass, MASS_CLIP, 1.0 - MASS_CLIP)
+    logit = (
+        model.bias
+        + model.sigma_weight * jnp.log(sigma)
+        + model.rays_weight * jnp.log(rays)
+        + model.particles_weight * jnp.log(capacity)
+        + model.mass_weight * (jnp.log(clipped) - jnp.log1p(-clipped))
+        + model.semantic_weight * semantic_fraction
+    )
+    return logit - model.depth_weight * depth_deficit if use_depth else logit
+
+
 def judge(
     state: ParticleState,
+    estimate: Array,
     best: Scores,
     match: PatchMatch,
     observation: ObservationConfig,
     config: VerdictConfig,
     degenerate: Array,
+    num_rays: int,
 ) -> Verdict:
     """The verdict of one frame from the weighted particles after the update.
 
     Args:
         state: the particles after the Bayes update (before resampling).
+        estimate: (4,) float32 the frame's estimate (the MLE particle's pose).
         best: the MLE particle's :class:`~jaxloc.sg2loc._scores.Scores`.
         match: the frame's :class:`~jaxloc.sg2loc._scores.PatchMatch`.
         observation: the observation model the scores came from (which terms, which variants).
         config: the thresholds.
         degenerate: bool, the update's weights fell back to uniform (never localized).
+        num_rays: rays per particle of the step's grid (static).
     """
     spread = particle_spread(state)
     active = jnp.maximum(jnp.sum(state.active), 1).astype(jnp.float32)
@@ -194,4 +326,19 @@ def judge(
         localized = localized & (depth_deficit <= config.max_depth_deficit)
     if observation.use_color:
         localized = localized & (color >= config.min_color)
-    return Verdict(localized, spread, ess_fraction, semantic_fraction, depth_deficit, color)
+    mass = posterior_mass(state, estimate, config.mass_radius, config.mass_yaw)
+    known = (observation.sigma, num_rays, state.active.shape[0])
+    logit = confidence_logit(
+        (mass, semantic_fraction, depth_deficit), known, config.confidence, observation.use_depth
+    )
+    confidence = jnp.where(degenerate, 0.0, jax.nn.sigmoid(logit))
+    return Verdict(
+        localized,
+        spread,
+        ess_fraction,
+        semantic_fraction,
+        depth_deficit,
+        color,
+        mass,
+        confidence,
+    )

@@ -108,6 +108,10 @@ class TrajectoryConfig:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
 
 
+#: The sensor depth models of :class:`SensorConfig`.
+DEPTH_MODELS = ("relative", "kinect")
+
+
 @dataclass(frozen=True)
 class SensorConfig:
     """Camera, patch grid and sensor noise. The defaults are the realistic (hard) setting.
@@ -118,7 +122,12 @@ class SensorConfig:
         patch_rows, patch_cols: patch grid (the reference uses 9 x 16 patches of 60 px).
         confusion_rate: probability that a patch's embedding comes from another object.
         cosine_range: (min, max) cosine between a patch embedding and its source object.
-        depth_noise: relative standard deviation of depth (0.02 = 2 %).
+        depth_noise: relative standard deviation of depth (0.02 = 2 %) of the ``"relative"``
+            depth model.
+        depth_model: ``"relative"`` (noise proportional to depth, blob holes) or ``"kinect"``
+            (a structured-light sensor: axial noise ``0.0012 + 0.0019 (z - 0.4)^2`` metres,
+            Nguyen et al. 2012, no depth beyond 4.5 m or across depth edges, blob holes;
+            ``depth_noise`` unused).
         hole_rate: fraction of depth pixels set to 0 (invalid) in blobs.
         rgb_noise: standard deviation of per-pixel colour noise (colours in [0, 1]).
         exposure_sigma: standard deviation of the log exposure gain per frame.
@@ -134,6 +143,7 @@ class SensorConfig:
     confusion_rate: float = 0.2
     cosine_range: tuple[float, float] = (0.7, 0.9)
     depth_noise: float = 0.02
+    depth_model: str = "relative"
     hole_rate: float = 0.1
     rgb_noise: float = 0.02
     exposure_sigma: float = 0.15
@@ -150,6 +160,8 @@ class SensorConfig:
         if not 0 < self.hfov_deg < 180:
             raise ValueError(f"hfov_deg must be in (0, 180), got {self.hfov_deg}")
         _check_range("cosine_range", self.cosine_range, -1.0, 1.0)
+        if self.depth_model not in DEPTH_MODELS:
+            raise ValueError(f"depth_model must be one of {DEPTH_MODELS}, got {self.depth_model!r}")
         for name in ("confusion_rate", "hole_rate"):
             if not 0.0 <= getattr(self, name) <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {getattr(self, name)}")

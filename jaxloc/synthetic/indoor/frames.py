@@ -129,15 +129,39 @@ def patch_embeddings(
 
 
 def sensor_depth(
-    rng: np.random.Generator, depth: np.ndarray, relative_noise: float, hole_rate: float
+    rng: np.random.Generator,
+    depth: np.ndarray,
+    relative_noise: float,
+    hole_rate: float,
+    model: str = "relative",
 ) -> np.ndarray:
     """Noisy sensor depth (T, H, W) float32 metres, 0 = invalid.
 
-    Each valid pixel is scaled by ``1 + relative_noise * N(0, 1)``; holes are blobs (a smoothed
-    random field thresholded at its ``1 - hole_rate`` quantile, so each frame loses exactly that
-    fraction of pixels); pixels that see nothing are holes too.
+    ``"relative"``: each valid pixel is scaled by ``1 + relative_noise * N(0, 1)``. ``"kinect"``:
+    each valid pixel gets axial noise of standard deviation ``0.0012 + 0.0019 (z - 0.4)^2``
+    metres (Nguyen, Izadi and Lovell 2012), and pixels beyond :data:`KINECT_RANGE` or next to a
+    depth edge (a neighbour more than 5 % nearer or farther) are invalid. Either way holes are
+    blobs (a smoothed random field thresholded at its ``1 - hole_rate`` quantile, so each frame
+    loses that fraction of pixels); pixels that see nothing are holes too.
     """
-    noisy = depth * (1.0 + relative_noise * rng.normal(size=depth.shape))
+    if model == "kinect":
+        sigma = 0.0012 + 0.0019 * (np.where(np.isfinite(depth), depth, 0.0) - 0.4) ** 2
+        noisy = depth + sigma * rng.normal(size=depth.shape)
+        finite = np.where(np.isfinite(depth), depth, 1e6)
+        edge = np.zeros(depth.shape, bool)
+        for axis in (1, 2):
+            step = np.abs(np.diff(finite, axis=axis)) > 0.05 * np.minimum(
+                finite[:, 1:] if axis == 1 else finite[:, :, 1:],
+                finite[:, :-1] if axis == 1 else finite[:, :, :-1],
+            )
+            pad = [(0, 0)] * 3
+            pad[axis] = (1, 0)
+            edge |= np.pad(step, pad)
+            pad[axis] = (0, 1)
+            edge |= np.pad(step, pad)
+        noisy = np.where(edge | (depth > KINECT_RANGE), 0.0, noisy)
+    else:
+        noisy = depth * (1.0 + relative_noise * rng.normal(size=depth.shape))
     num_views, height, width = depth.shape
     if hole_rate > 0:
         field = rng.normal(size=depth.shape)
@@ -151,6 +175,10 @@ def sensor_depth(
         noisy = np.where(holes.reshape(depth.shape), 0.0, noisy)
     noisy = np.where(np.isfinite(depth) & (noisy > 0), noisy, 0.0)
     return noisy.astype(np.float32)
+
+
+#: The ``"kinect"`` depth model's range (metres): farther pixels are invalid.
+KINECT_RANGE = 4.5
 
 
 def sensor_rgb(

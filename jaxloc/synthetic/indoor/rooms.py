@@ -325,7 +325,7 @@ def episode_in_room(
         camera,
         embeddings,
         frames.noisy_ego_motion(sensor_rng, poses, s.ego_translation_sigma, s.ego_yaw_sigma),
-        depth=frames.sensor_depth(sensor_rng, depth, s.depth_noise, s.hole_rate),
+        depth=frames.sensor_depth(sensor_rng, depth, s.depth_noise, s.hole_rate, s.depth_model),
         rgb=frames.sensor_rgb(sensor_rng, color, s.rgb_noise, s.exposure_sigma),
         tilt=tilts,
     )
