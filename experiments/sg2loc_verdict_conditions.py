@@ -54,10 +54,12 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+# the look-alike place of map seed s is the room of seed s + PLACE_OFFSET, as in the rule's choice
+from sg2loc_verdict import PLACE_OFFSET, parse_seeds  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "experiments" / "results" / "sg2loc_verdict_conditions"
-#: The look-alike place of map seed s is the room of seed s + PLACE_OFFSET.
-PLACE_OFFSET = 7919
 #: Image sizes of the development conditions and how often each is drawn (the larger, the
 #: costlier on a CPU).
 SIZES = {(160, 90): 0.35, (320, 180): 0.3, (480, 270): 0.15, (640, 360): 0.12, (960, 540): 0.08}
@@ -85,11 +87,6 @@ MASS_CLIP = 0.01
 #: Development targets of the threshold on out-of-fold confidences (margins beyond the 95 % /
 #: 5 % requirement).
 MIN_PRECISION, MAX_FALSE_ACCEPT = 0.97, 0.02
-
-
-def parse_seeds(text: str) -> list[int]:
-    first, _, last = text.partition("-")
-    return list(range(int(first), int(last or first) + 1))
 
 
 def draw_condition(seed: int, variant: str, sizes: list[tuple[int, int]] | None) -> dict:
@@ -201,13 +198,11 @@ def rows_of(seed, kind, mode, episode, poses, verdicts, seconds, condition):
 
 def run_split(split, seeds, frames, variant, sizes) -> None:
     import jax
+    from sg2loc_tables import SharedCapacity
 
     from jaxloc import enable_compilation_cache
     from jaxloc.sg2loc import localize, online
     from jaxloc.synthetic.indoor import make_episode, make_lookalike_episode
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from sg2loc_tables import SharedCapacity
 
     enable_compilation_cache()
     OUT.mkdir(parents=True, exist_ok=True)

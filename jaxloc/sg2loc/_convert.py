@@ -27,6 +27,19 @@ def as_int32(value) -> Array:
     return _as_array(value, np.int32)
 
 
+def finite_scalar(owner: str, name: str, value) -> float | None:
+    """A scalar configuration field's value as a float, or None for a tracer (unchecked); a
+    one-line ValueError naming ``owner.name`` unless it is a finite scalar."""
+    if jnp.shape(value) != ():
+        raise ValueError(f"{owner}.{name} must be a scalar, got {value!r}")
+    if not concrete(value):
+        return None
+    number = float(np.asarray(value))
+    if not np.isfinite(number):
+        raise ValueError(f"{owner}.{name} must be finite, got {number}")
+    return number
+
+
 def finite_nonnegative(value) -> bool:
     """Whether every entry of ``value`` is finite and >= 0 (True for a tracer: unchecked)."""
     if not concrete(value):

@@ -20,11 +20,10 @@ from typing import NamedTuple
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import Array
 
 from jaxloc.camera import stride_grid_shape
-from jaxloc.sg2loc._convert import as_float32
+from jaxloc.sg2loc._convert import as_float32, finite_scalar
 
 #: Semantic score variants (``ObservationConfig.semantic_variant``; "gated" the default).
 SEMANTIC_VARIANTS = ("gated", "soft")
@@ -346,14 +345,9 @@ class ObservationConfig(eqx.Module):
         _check_choice("depth_variant", self.depth_variant, DEPTH_VARIANTS)
         _check_choice("color_variant", self.color_variant, COLOR_VARIANTS)
         for name in ("lambda_depth", "lambda_color", "sigma", "depth_clip", "depth_miss_error"):
-            value = getattr(self, name)
-            if jnp.shape(value) != ():
-                raise ValueError(f"ObservationConfig.{name} must be a scalar, got {value!r}")
-            if isinstance(value, jax.core.Tracer):
+            value = finite_scalar("ObservationConfig", name, getattr(self, name))
+            if value is None:
                 continue
-            value = float(np.asarray(value))
-            if not np.isfinite(value):
-                raise ValueError(f"ObservationConfig.{name} must be finite, got {value}")
             if name in ("sigma", "depth_clip") and not value > 0:
                 raise ValueError(f"ObservationConfig.{name} must be positive, got {value}")
             if name.startswith("lambda") and not value >= 0:

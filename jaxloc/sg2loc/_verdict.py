@@ -38,7 +38,7 @@ import numpy as np
 from jax import Array
 
 from jaxloc.geometry import wrap_angle
-from jaxloc.sg2loc._convert import as_float32
+from jaxloc.sg2loc._convert import as_float32, finite_scalar
 from jaxloc.sg2loc._particles import ParticleState, effective_sample_size, normalized_weights
 from jaxloc.sg2loc._scores import (
     COLOR_MAX,
@@ -79,15 +79,8 @@ class ConfidenceModel(eqx.Module):
 
     def __check_init__(self):
         for name in _CONFIDENCE_FIELDS:
-            value = getattr(self, name)
-            if jnp.shape(value) != ():
-                raise ValueError(f"ConfidenceModel.{name} must be a scalar, got {value!r}")
-            if isinstance(value, jax.core.Tracer):
-                continue
-            value = float(np.asarray(value))
-            if not np.isfinite(value):
-                raise ValueError(f"ConfidenceModel.{name} must be finite, got {value}")
-            if name in _EVIDENCE_WEIGHTS and not value >= 0:
+            value = finite_scalar("ConfidenceModel", name, getattr(self, name))
+            if value is not None and name in _EVIDENCE_WEIGHTS and not value >= 0:
                 raise ValueError(
                     f"ConfidenceModel.{name} must be >= 0 (the confidence rises with the "
                     f"evidence), got {value}"
