@@ -417,16 +417,8 @@ def update_step(
     best_pose, best = mle(state)
     mean_pose = weighted_mean(state)
     best_scores = jax.tree.map(lambda a: a[best], scores)
-    verdict = judge(
-        state,
-        best_pose,
-        best_scores,
-        match,
-        config.observation,
-        config.verdict,
-        degenerate,
-        config.num_rays,
-    )
+    judged = (config.observation, config.verdict, degenerate, config.num_rays)
+    verdict = judge(state, best_pose, best_scores, match, *judged)
 
     weighted = state
     state, kld_info = kld_resample(key_resample, state, config.kld)
