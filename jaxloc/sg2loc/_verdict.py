@@ -66,7 +66,9 @@ class ConfidenceModel(eqx.Module):
     [:data:`MASS_CLIP`, 1 - :data:`MASS_CLIP`], the semantic fraction, the depth deficit) with
     weights >= 0, so that the confidence rises with each kind, shifted by what the step knows of
     how sharp that evidence is: the likelihood width ``sigma``, the rays per particle of its grid
-    and the particle capacity. The defaults are :data:`CONFIDENCE_WITH_DEPTH`'s.
+    and the particle capacity. ``ConfidenceModel()`` has every weight 0 (a constant 0.5); the
+    fitted presets are :data:`CONFIDENCE_WITH_DEPTH` and :data:`CONFIDENCE_WITHOUT_DEPTH`, which
+    :data:`VERDICT_WITH_DEPTH` and :data:`VERDICT_WITHOUT_DEPTH` carry.
     """
 
     bias: Array = eqx.field(default=0.0, converter=as_float32)
