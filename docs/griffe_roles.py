@@ -63,6 +63,9 @@ class SphinxRoles(griffe.Extension):
                 obj.docstring.value = ROLE.sub(
                     functools.partial(self._replace, pkg, obj), obj.docstring.value
                 )
+        for obj in objects:
+            if obj.is_class and obj.docstring is not None:
+                _attributes_once(obj)
 
     def _replace(self, root: griffe.Module, obj: griffe.Object, match: re.Match) -> str:
         title, tilde, target, call = match.group(1), match.group(2), match.group(3), match.group(4)
@@ -169,6 +172,37 @@ def comment_block(lines: list[str], lineno: int) -> tuple[int, list[str]] | None
         block.insert(0, text[1:] if text.startswith(" ") else text)
         index -= 1
     return (index + 2, block) if block else None
+
+
+def _entry_names(entry: griffe.DocstringAttribute) -> list[str]:
+    """The attribute names of one ``Attributes:`` entry: ``fx, fy: ...`` parses as the name
+    ``fx,`` with the annotation ``fy``."""
+    if not entry.name.endswith(","):
+        return [entry.name]
+    return [entry.name[:-1], *(n.strip() for n in str(entry.annotation).split(","))]
+
+
+def _attributes_once(cls: griffe.Object) -> None:
+    """Move each ``Attributes:`` entry of the class docstring that names an attribute member onto
+    that member (as its docstring, unless it has one), dropping the section once it is empty."""
+    sections = cls.docstring.parsed
+    for section in sections:
+        if section.kind is not griffe.DocstringSectionKind.attributes:
+            continue
+        kept = []
+        for entry in section.value:
+            names = _entry_names(entry)
+            members = [cls.members.get(name) for name in names]
+            if not all(m is not None and not m.is_alias and m.is_attribute for m in members):
+                kept.append(entry)
+                continue
+            for member in members:
+                if member.docstring is None:
+                    member.docstring = griffe.Docstring(entry.description, parent=member)
+        section.value[:] = kept
+    sections[:] = [
+        s for s in sections if s.kind is not griffe.DocstringSectionKind.attributes or s.value
+    ]
 
 
 def _comment_docstring(attr: griffe.Object, loader: Any) -> None:

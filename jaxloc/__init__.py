@@ -24,7 +24,7 @@ from __future__ import annotations
 from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING
 
-from jaxloc._lazy import lazy_exports
+from jaxloc._lazy import lazy_exports, public_names
 
 __getattr__, __dir__ = lazy_exports(
     __name__,
@@ -38,63 +38,55 @@ try:
 except PackageNotFoundError:  # a source tree that was never installed
     __version__ = "0+unknown"
 
-__all__ = [
-    "__version__",
-    "Camera",
-    "Capacity",
-    "MapFormatError",
-    "RayGrid",
-    "RayHit",
-    "Render",
-    "SceneGraph",
-    "FrameSequence",
-    "enable_compilation_cache",
-    "load_scene",
-    "patch_grid",
-    "raycast",
-    "render",
-    "render_batch",
-    "save_scene",
-    "stride_grid",
-    "camera",
-    "compilation_cache",
-    "figures",
-    "geometry",
-    "io",
-    "lsq",
-    "m2loc",
-    "mapping",
-    "metrics",
-    "raycasting",
-    "scene",
-    "sg2loc",
-    "sharding",
-    "synthetic",
-]
+__all__ = ["__version__", *public_names(__file__)]
 
 
 if TYPE_CHECKING:  # what the lazy names are, for type checkers and the docs
     from jaxloc import (
-        camera,
-        compilation_cache,
-        figures,
-        geometry,
-        io,
-        lsq,
-        m2loc,
-        mapping,
-        metrics,
-        raycasting,
-        scene,
-        sg2loc,
-        sharding,
-        synthetic,
+        camera as camera,
+        compilation_cache as compilation_cache,
+        figures as figures,
+        geometry as geometry,
+        io as io,
+        lsq as lsq,
+        m2loc as m2loc,
+        mapping as mapping,
+        metrics as metrics,
+        raycasting as raycasting,
+        scene as scene,
+        sg2loc as sg2loc,
+        sharding as sharding,
+        synthetic as synthetic,
     )
-    from jaxloc.camera import Camera, RayGrid, patch_grid, stride_grid
-    from jaxloc.compilation_cache import enable_compilation_cache
-    from jaxloc.io.errors import MapFormatError
-    from jaxloc.io.scene_map import load_scene, save_scene
-    from jaxloc.raycasting.hits import RayHit, raycast
-    from jaxloc.scene import Capacity, SceneGraph
-    from jaxloc.sg2loc._rendering import Render, render, render_batch
-    from jaxloc.sg2loc._sequence import FrameSequence
+    from jaxloc.camera import (
+        Camera as Camera,
+        RayGrid as RayGrid,
+        patch_grid as patch_grid,
+        stride_grid as stride_grid,
+    )
+    from jaxloc.compilation_cache import (
+        enable_compilation_cache as enable_compilation_cache,
+    )
+    from jaxloc.io.errors import (
+        MapFormatError as MapFormatError,
+    )
+    from jaxloc.io.scene_map import (
+        load_scene as load_scene,
+        save_scene as save_scene,
+    )
+    from jaxloc.raycasting.hits import (
+        RayHit as RayHit,
+        raycast as raycast,
+    )
+    from jaxloc.scene import (
+        Capacity as Capacity,
+        SceneGraph as SceneGraph,
+    )
+    from jaxloc.sg2loc._rendering import (
+        Render as Render,
+        render as render,
+        render_batch as render_batch,
+    )
+    from jaxloc.sg2loc._sequence import (
+        FrameSequence as FrameSequence,
+    )

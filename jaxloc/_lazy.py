@@ -2,9 +2,11 @@
 costs only what is used: ``jaxloc --help`` imports no JAX, a LiDAR command no camera code; and
 public names kept for one more release under an old spelling, with a ``DeprecationWarning``.
 
-A lazy package lists each public name in its ``__all__`` and once more, with where it comes
-from, as an import under ``if TYPE_CHECKING:`` (which type checkers and the API reference read);
-:func:`lazy_exports` reads that block from the package's source, so the two are all there is.
+A package lists each public name once, as a redundant-alias import (``from module import name as
+name``, the re-export convention of type checkers): at module level when the package imports it
+eagerly, under ``if TYPE_CHECKING:`` when it imports it on first use. :func:`public_names` reads
+these imports from the package's source for its ``__all__``, :func:`lazy_exports` the lazy ones for
+where each name comes from, and the docs build's griffe extension for the API reference.
 """
 
 from __future__ import annotations
@@ -33,6 +35,19 @@ def type_checking_imports(path: str | Path) -> dict[str, str]:
                 for alias in statement.names:
                     exports[alias.asname or alias.name] = f"{statement.module}:{alias.name}"
     return exports
+
+
+def public_names(path: str | Path) -> list[str]:
+    """The public names of the package at ``path``, in source order: its redundant-alias imports
+    (``from module import name as name``) at module level and under ``if TYPE_CHECKING:``, the one
+    place each is listed (the package's ``__all__`` is this list)."""
+    statements = []
+    for node in ast.parse(Path(path).read_text()).body:
+        if isinstance(node, ast.ImportFrom):
+            statements.append(node)
+        elif isinstance(node, ast.If) and getattr(node.test, "id", "") == "TYPE_CHECKING":
+            statements += [s for s in node.body if isinstance(s, ast.ImportFrom)]
+    return [a.name for s in statements for a in s.names if a.asname == a.name]
 
 
 def _resolve(source: str) -> object:

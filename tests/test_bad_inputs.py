@@ -18,8 +18,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from jaxloc.io import meshes as mesh_io
-from jaxloc.io import read_embedding_table, read_instance_map, read_semantickitti_scan
+from jaxloc.io import (
+    meshes as mesh_io,
+    read_embedding_table,
+    read_instance_map,
+    read_semantickitti_scan,
+)
 from jaxloc.m2loc import build_map
 from jaxloc.scene import Capacity, SceneGraph
 from jaxloc.sg2loc._particles import ParticleState, init_box, init_region, inject_uniform, predict

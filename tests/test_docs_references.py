@@ -1,7 +1,8 @@
-"""The API reference reads well: no Sphinx role is left as raw text, every role resolves, and every
-public module constant has a description (docs/griffe_roles.py, the docs build's griffe extension).
+"""The API reference reads well: it renders each package's public names (docs/griffe_public.py), no
+Sphinx role is left as raw text, every role resolves, and every public module constant has a
+description (docs/griffe_roles.py); both are the docs build's griffe extensions.
 
-The fast checks load the package with griffe and the extension as the docs build does (no mkdocs
+The fast checks load the package with griffe and the extensions as the docs build does (no mkdocs
 needed). The last one builds the site (``mkdocs build --strict``, a few seconds; skipped without
 mkdocs) and looks for raw roles in the HTML itself.
 """
@@ -20,9 +21,17 @@ import pytest
 griffe = pytest.importorskip("griffe")
 
 REPO = Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location("griffe_roles", REPO / "docs" / "griffe_roles.py")
-roles = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(roles)
+
+
+def _extension_module(name):
+    spec = importlib.util.spec_from_file_location(name, REPO / "docs" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+roles = _extension_module("griffe_roles")
+public = _extension_module("griffe_public")
 
 
 def load(*extensions):
@@ -38,7 +47,39 @@ def load(*extensions):
 @pytest.fixture(scope="module")
 def loaded():
     extension = roles.SphinxRoles()
-    return load(extension), extension
+    return load(public.PublicNames(), extension), extension
+
+
+PACKAGES = [
+    "jaxloc",
+    "jaxloc.io",
+    "jaxloc.m2loc",
+    "jaxloc.sg2loc",
+    "jaxloc.sg2loc.learn",
+    "jaxloc.sg2loc.refine",
+    "jaxloc.mapping",
+    "jaxloc.raycasting",
+    "jaxloc.synthetic.indoor",
+]
+
+
+def exports(root, package) -> list[str]:
+    module = root if package == "jaxloc" else root[package.removeprefix("jaxloc.")]
+    return [str(name) for name in module.exports or []]
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_the_reference_exports_what_the_package_exports(loaded, package):
+    """``__all__`` is derived at run time, which griffe cannot read: with the extension, griffe's
+    exports are ``__all__``, in its order."""
+    assert exports(loaded[0], package) == importlib.import_module(package).__all__
+
+
+def test_without_the_extension_the_reference_misses_names():
+    bare = load()
+    assert all(
+        exports(bare, package) != importlib.import_module(package).__all__ for package in PACKAGES
+    )
 
 
 def raw_roles(package) -> dict[str, list[str]]:

@@ -28,8 +28,13 @@ from jaxloc import FrameSequence
 from jaxloc.camera import Camera, stride_grid
 from jaxloc.geometry import compose_yaw, ego_motion, wrap_angle
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc import SG2LocConfig, SG2LocResult, carry_back, localize
-from jaxloc.sg2loc import _localization as localization
+from jaxloc.sg2loc import (
+    SG2LocConfig,
+    SG2LocResult,
+    _localization as localization,
+    carry_back,
+    localize,
+)
 from jaxloc.sg2loc._filter import (
     Frame,
     Region,

@@ -27,8 +27,7 @@ from _camera_fixtures import (
     write_binary_ply,
     write_scannet_scan,
 )
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from jaxloc import SceneGraph
 from jaxloc.camera import Camera

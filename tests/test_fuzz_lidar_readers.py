@@ -18,8 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from _helipr_fixtures import FIRST_STAMP, pack_labels, pack_records, tum_line
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 
 from jaxloc.io import (
     load_triplet_map,

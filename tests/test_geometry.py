@@ -9,8 +9,7 @@ import jaxlie
 import numpy as np
 import pytest
 from conftest import BODY_CAM, rot_x, rot_y, rot_z
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
 from jaxloc import geometry as g
 

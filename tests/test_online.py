@@ -187,8 +187,12 @@ def test_a_stride_too_coarse_for_ssim_names_the_setting_that_fixes_it(world):
     and the offline filter refuse it in one line naming the setting (the one config both take)
     and the largest stride that fits (13); without colour either runs."""
     from jaxloc.camera import Camera
-    from jaxloc.sg2loc import FrameSequence, ObservationConfig, warm_up
-    from jaxloc.sg2loc import _localization as localization
+    from jaxloc.sg2loc import (
+        FrameSequence,
+        ObservationConfig,
+        _localization as localization,
+        warm_up,
+    )
 
     scene = world[0]
     camera = Camera.from_fov(160, 90, 60.0)

@@ -13,11 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import trimesh
 from conftest import brute_force, edge_margin
-from hypothesis import given, settings
-from hypothesis import strategies as st
+from hypothesis import given, settings, strategies as st
 
-from jaxloc import geometry as g
-from jaxloc import raycast
+from jaxloc import geometry as g, raycast
 from jaxloc.m2loc import DescriptorConfig, describe_points
 from jaxloc.scene import Capacity, SceneGraph
 

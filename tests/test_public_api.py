@@ -61,6 +61,10 @@ def test_renamed_reader_names_still_work_in_their_modules():
 
     with pytest.warns(DeprecationWarning, match="use jaxloc.io.meshes.read_meshes"):
         assert meshes.load_meshes is read_meshes
+    from jaxloc.io import TRIPLET_MAP_FORMAT_VERSION, lidar_map
+
+    with pytest.warns(DeprecationWarning, match="lidar_map.TRIPLET_MAP_FORMAT_VERSION"):
+        assert lidar_map.FORMAT_VERSION == TRIPLET_MAP_FORMAT_VERSION
 
 
 def test_old_module_paths_import_with_a_warning():

@@ -7,8 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxloc.sg2loc import _particles as P
-from jaxloc.sg2loc import _resampling as R
+from jaxloc.sg2loc import _particles as P, _resampling as R
 
 KEY = jax.random.PRNGKey(0)
 METHODS = ["stratified", "systematic"]

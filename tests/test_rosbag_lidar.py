@@ -18,8 +18,7 @@ import numpy as np
 import pytest
 from _helipr_fixtures import tum_line, write_kitti_twin
 from _rosbag_fixtures import KINDS, BagWriter, bag_path, packed_records, write_drive
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
+from hypothesis import HealthCheck, given, settings, strategies as st
 from scipy.spatial.transform import Rotation
 
 from jaxloc.cli import main

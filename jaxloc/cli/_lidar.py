@@ -188,8 +188,7 @@ def run_localize_lidar(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from jaxloc import io
-    from jaxloc.m2loc import _evaluation as evaluation
-    from jaxloc.m2loc import localize_drive
+    from jaxloc.m2loc import _evaluation as evaluation, localize_drive
 
     accumulate, drive_config = drive_options(args)  # checked by check_localize_lidar
     with reading():

@@ -41,88 +41,96 @@ lower-level readers these are built from.
 
 from typing import TYPE_CHECKING
 
-from jaxloc._lazy import lazy_exports
+from jaxloc._lazy import lazy_exports, public_names
 
-__all__ = [
-    "CAMERA_FORMATS",
-    "TRIPLET_MAP_FORMAT_VERSION",
-    "CameraRecording",
-    "ClassEmbeddings",
-    "EmbeddingTable",
-    "InstanceMap",
-    "LabelledReconstruction",
-    "LabelledScan",
-    "LidarRecording",
-    "LidarSequence",
-    "MapFormatError",
-    "PoseFile",
-    "ReconstructionObject",
-    "load_class_embeddings",
-    "load_scene",
-    "load_triplet_map",
-    "open_camera_recording",
-    "open_lidar_recording",
-    "open_triplet_map",
-    "patch_embeddings_from_labels",
-    "read_3rscan",
-    "read_centroid_scan",
-    "read_embedding_table",
-    "read_helipr_scan",
-    "read_instance_map",
-    "read_label_image",
-    "read_label_table",
-    "read_labelled_ply",
-    "read_mesh_scene",
-    "read_meshes",
-    "read_objects_file",
-    "read_pose_file",
-    "read_road_normals",
-    "read_scannet",
-    "read_semantickitti_scan",
-    "save_scene",
-    "save_triplet_map",
-    "write_camera_poses",
-    "write_drive_rerun",
-    "write_instance_maps",
-    "write_kitti",
-    "write_lidar_poses",
-    "write_pose_bag",
-    "write_rerun",
-    "write_tum",
-]
+__all__ = public_names(__file__)
 
 if TYPE_CHECKING:  # where each public name comes from (jaxloc._lazy imports it on first use)
-    from jaxloc.io.camera_recording import open_camera_recording, write_camera_poses
-    from jaxloc.io.camera_sequence import CAMERA_FORMATS, CameraRecording
-    from jaxloc.io.embedding_table import EmbeddingTable, read_embedding_table
-    from jaxloc.io.errors import MapFormatError
-    from jaxloc.io.helipr import read_helipr_scan
+    from jaxloc.io.camera_recording import (
+        open_camera_recording as open_camera_recording,
+        write_camera_poses as write_camera_poses,
+    )
+    from jaxloc.io.camera_sequence import (
+        CAMERA_FORMATS as CAMERA_FORMATS,
+        CameraRecording as CameraRecording,
+    )
+    from jaxloc.io.embedding_table import (
+        EmbeddingTable as EmbeddingTable,
+        read_embedding_table as read_embedding_table,
+    )
+    from jaxloc.io.errors import (
+        MapFormatError as MapFormatError,
+    )
+    from jaxloc.io.helipr import (
+        read_helipr_scan as read_helipr_scan,
+    )
     from jaxloc.io.instance_maps import (
-        InstanceMap,
-        read_instance_map,
-        read_road_normals,
-        write_instance_maps,
+        InstanceMap as InstanceMap,
+        read_instance_map as read_instance_map,
+        read_road_normals as read_road_normals,
+        write_instance_maps as write_instance_maps,
     )
-    from jaxloc.io.label_images import patch_embeddings_from_labels, read_label_image
-    from jaxloc.io.lidar_map import FORMAT_VERSION as TRIPLET_MAP_FORMAT_VERSION
-    from jaxloc.io.lidar_map import load_triplet_map, open_triplet_map, save_triplet_map
+    from jaxloc.io.label_images import (
+        patch_embeddings_from_labels as patch_embeddings_from_labels,
+        read_label_image as read_label_image,
+    )
+    from jaxloc.io.lidar_map import (
+        TRIPLET_MAP_FORMAT_VERSION as TRIPLET_MAP_FORMAT_VERSION,
+        load_triplet_map as load_triplet_map,
+        open_triplet_map as open_triplet_map,
+        save_triplet_map as save_triplet_map,
+    )
     from jaxloc.io.lidar_recording import (
-        LidarRecording,
-        open_lidar_recording,
-        read_centroid_scan,
-        write_lidar_poses,
+        LidarRecording as LidarRecording,
+        open_lidar_recording as open_lidar_recording,
+        read_centroid_scan as read_centroid_scan,
+        write_lidar_poses as write_lidar_poses,
     )
-    from jaxloc.io.lidar_sequence import LidarSequence
-    from jaxloc.io.meshes import read_mesh_scene, read_meshes, read_objects_file
-    from jaxloc.io.ply import read_labelled_ply
-    from jaxloc.io.poses import PoseFile, read_pose_file, write_kitti, write_tum
-    from jaxloc.io.reconstruction import LabelledReconstruction, ReconstructionObject
-    from jaxloc.io.rerun_log import write_drive_rerun, write_rerun
-    from jaxloc.io.rosbag_poses import write_pose_bag
-    from jaxloc.io.rscan import read_3rscan
-    from jaxloc.io.scannet import read_label_table, read_scannet
-    from jaxloc.io.scene_map import ClassEmbeddings, load_class_embeddings, load_scene, save_scene
-    from jaxloc.io.semantickitti import LabelledScan, read_semantickitti_scan
+    from jaxloc.io.lidar_sequence import (
+        LidarSequence as LidarSequence,
+    )
+    from jaxloc.io.meshes import (
+        read_mesh_scene as read_mesh_scene,
+        read_meshes as read_meshes,
+        read_objects_file as read_objects_file,
+    )
+    from jaxloc.io.ply import (
+        read_labelled_ply as read_labelled_ply,
+    )
+    from jaxloc.io.poses import (
+        PoseFile as PoseFile,
+        read_pose_file as read_pose_file,
+        write_kitti as write_kitti,
+        write_tum as write_tum,
+    )
+    from jaxloc.io.reconstruction import (
+        LabelledReconstruction as LabelledReconstruction,
+        ReconstructionObject as ReconstructionObject,
+    )
+    from jaxloc.io.rerun_log import (
+        write_drive_rerun as write_drive_rerun,
+        write_rerun as write_rerun,
+    )
+    from jaxloc.io.rosbag_poses import (
+        write_pose_bag as write_pose_bag,
+    )
+    from jaxloc.io.rscan import (
+        read_3rscan as read_3rscan,
+    )
+    from jaxloc.io.scannet import (
+        read_label_table as read_label_table,
+        read_scannet as read_scannet,
+    )
+    from jaxloc.io.scene_map import (
+        ClassEmbeddings as ClassEmbeddings,
+        load_class_embeddings as load_class_embeddings,
+        load_scene as load_scene,
+        save_scene as save_scene,
+    )
+    from jaxloc.io.semantickitti import (
+        LabelledScan as LabelledScan,
+        read_semantickitti_scan as read_semantickitti_scan,
+    )
 
 __getattr__, __dir__ = lazy_exports(
     __name__,

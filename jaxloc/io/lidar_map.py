@@ -22,6 +22,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
+from jaxloc._lazy import renamed_names
 from jaxloc.compilation_cache import cache_entry
 from jaxloc.io._atomic import write_npz_atomic
 from jaxloc.io._map_file import read_map_file
@@ -42,7 +43,7 @@ from jaxloc.m2loc._map import fit_config_to_map, triplet_map_spec
 #: The ``format`` entry of a triplet-map file (a file without it is refused).
 FORMAT_NAME = "jaxloc.TripletMap"
 #: The triplet-map file version this module writes and reads.
-FORMAT_VERSION = 1
+TRIPLET_MAP_FORMAT_VERSION = 1
 
 # name: (dtype, shape with -1 for "any"; N vertices, S scales, D dim, M RSN cells checked after)
 _ARRAYS = {
@@ -97,7 +98,7 @@ def save_triplet_map(triplet_map: TripletMap, path: str | os.PathLike) -> None:
     arrays = {name: np.asarray(getattr(triplet_map, name)) for name in _ARRAYS if name != "has_rsn"}
     arrays["has_rsn"] = np.array(triplet_map.has_rsn)
     arrays["format"] = np.array(FORMAT_NAME)
-    arrays["version"] = np.array(FORMAT_VERSION, np.int64)
+    arrays["version"] = np.array(TRIPLET_MAP_FORMAT_VERSION, np.int64)
     arrays["config"] = np.array(json.dumps(_config_to_dict(triplet_map.config)))
     write_npz_atomic(path, arrays)
 
@@ -162,7 +163,7 @@ def load_triplet_map(path: str | os.PathLike) -> TripletMap:
         SmallMapWarning: the saved ``top_k`` exceeds the map's vertices (it is clamped).
     """
     path = Path(path)
-    content = read_map_file(path, FORMAT_NAME, FORMAT_VERSION, "triplet map")
+    content = read_map_file(path, FORMAT_NAME, TRIPLET_MAP_FORMAT_VERSION, "triplet map")
     try:
         config = _config_from_dict(TripletConfig, json.loads(str(content["config"])))
     except Exception as err:  # JSON, unknown fields, wrong types, config checks
@@ -251,7 +252,7 @@ def _kept_map_file(points, labels, normals, config: TripletConfig) -> Path | Non
     return cache_entry(
         "maps",
         ".npz",
-        FORMAT_VERSION,
+        TRIPLET_MAP_FORMAT_VERSION,
         np.asarray(points),
         np.asarray(labels),
         *rsn,
@@ -272,3 +273,7 @@ def _load_kept_map(file: Path, config: TripletConfig) -> TripletMap | None:
         return None
     fitted = fit_config_to_map(config, int(kept.points.shape[0]), stacklevel=3)
     return eqx.tree_at(lambda m: m.config, kept, fitted)
+
+
+#: The constant's name in jaxloc 0.2; it resolves, with a DeprecationWarning, until 0.4.
+__getattr__ = renamed_names(__name__, {"FORMAT_VERSION": "TRIPLET_MAP_FORMAT_VERSION"})

@@ -49,8 +49,15 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxloc.io._rosbag import first_message, no_topic, open_bag, pick_topic, seconds, topics_of
-from jaxloc.io._rosbag import is_bag as is_bag
+from jaxloc.io._rosbag import (
+    first_message,
+    is_bag as is_bag,
+    no_topic,
+    open_bag,
+    pick_topic,
+    seconds,
+    topics_of,
+)
 from jaxloc.io._rosbag_images import (
     CAMERA_INFO,
     COMPRESSED,

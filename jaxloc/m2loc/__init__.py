@@ -26,65 +26,71 @@ Modules (private; everything public is re-exported here): ``_clusters`` (instanc
 ``_evaluation`` (errors and success rates), ``_classes`` and ``_road_normals`` (shared types).
 """
 
-from jaxloc._lazy import deprecated_names
-from jaxloc.m2loc._accumulation import FusedScans, fuse_scans, localize_window
-from jaxloc.m2loc._batch import localize_scans
-from jaxloc.m2loc._clique import max_clique
-from jaxloc.m2loc._clusters import ClusterConfig, Instances, cluster_instances
-from jaxloc.m2loc._config import TripletConfig, m2loc_config, tripletloc_config
-from jaxloc.m2loc._descriptors import DescriptorConfig, describe_points
-from jaxloc.m2loc._drive import DriveConfig, DriveResult, localize_drive
-from jaxloc.m2loc._evaluation import localization_errors, summarize_localization
-from jaxloc.m2loc._localization import (
-    LocalizationResult,
-    PaddedScan,
-    localize_scan,
-    pad_scan,
-    prepare_queries,
-    query,
+from jaxloc._lazy import deprecated_names, public_names
+from jaxloc.m2loc._accumulation import (
+    FusedScans as FusedScans,
+    fuse_scans as fuse_scans,
+    localize_window as localize_window,
 )
-from jaxloc.m2loc._map import SmallMapWarning, TripletMap, build_map, with_config
-from jaxloc.m2loc._matching import match_descriptors
-from jaxloc.m2loc._registration import register
-from jaxloc.m2loc._road_normals import RoadNormals
-from jaxloc.m2loc._tracking import TrackConfig, Tracker, TrackStatus
+from jaxloc.m2loc._batch import (
+    localize_scans as localize_scans,
+)
+from jaxloc.m2loc._clique import (
+    max_clique as max_clique,
+)
+from jaxloc.m2loc._clusters import (
+    ClusterConfig as ClusterConfig,
+    Instances as Instances,
+    cluster_instances as cluster_instances,
+)
+from jaxloc.m2loc._config import (
+    TripletConfig as TripletConfig,
+    m2loc_config as m2loc_config,
+    tripletloc_config as tripletloc_config,
+)
+from jaxloc.m2loc._descriptors import (
+    DescriptorConfig as DescriptorConfig,
+    describe_points as describe_points,
+)
+from jaxloc.m2loc._drive import (
+    DriveConfig as DriveConfig,
+    DriveResult as DriveResult,
+    localize_drive as localize_drive,
+)
+from jaxloc.m2loc._evaluation import (
+    localization_errors as localization_errors,
+    summarize_localization as summarize_localization,
+)
+from jaxloc.m2loc._localization import (
+    LocalizationResult as LocalizationResult,
+    PaddedScan as PaddedScan,
+    localize_scan as localize_scan,
+    pad_scan as pad_scan,
+    prepare_queries as prepare_queries,
+    query as query,
+)
+from jaxloc.m2loc._map import (
+    SmallMapWarning as SmallMapWarning,
+    TripletMap as TripletMap,
+    build_map as build_map,
+    with_config as with_config,
+)
+from jaxloc.m2loc._matching import (
+    match_descriptors as match_descriptors,
+)
+from jaxloc.m2loc._registration import (
+    register as register,
+)
+from jaxloc.m2loc._road_normals import (
+    RoadNormals as RoadNormals,
+)
+from jaxloc.m2loc._tracking import (
+    TrackConfig as TrackConfig,
+    Tracker as Tracker,
+    TrackStatus as TrackStatus,
+)
 
-__all__ = [
-    "ClusterConfig",
-    "DescriptorConfig",
-    "DriveConfig",
-    "DriveResult",
-    "FusedScans",
-    "Instances",
-    "LocalizationResult",
-    "PaddedScan",
-    "RoadNormals",
-    "SmallMapWarning",
-    "TrackConfig",
-    "TrackStatus",
-    "Tracker",
-    "TripletConfig",
-    "TripletMap",
-    "build_map",
-    "cluster_instances",
-    "describe_points",
-    "fuse_scans",
-    "localization_errors",
-    "localize_drive",
-    "localize_scan",
-    "localize_scans",
-    "localize_window",
-    "m2loc_config",
-    "match_descriptors",
-    "max_clique",
-    "pad_scan",
-    "prepare_queries",
-    "query",
-    "register",
-    "summarize_localization",
-    "tripletloc_config",
-    "with_config",
-]
+__all__ = public_names(__file__)
 
 #: Names public in jaxloc 0.2 and internal now, or replaced: they still resolve, with a
 #: DeprecationWarning, for one more release.

@@ -11,28 +11,23 @@ the latter's types, so neither the readers nor the methods depend on each other.
 
 from typing import TYPE_CHECKING
 
-from jaxloc._lazy import lazy_exports
+from jaxloc._lazy import lazy_exports, public_names
 
 __getattr__, __dir__ = lazy_exports(__name__, __file__)
 
 if TYPE_CHECKING:  # the lazy names, for type checkers and the API reference
-    from jaxloc.mapping.lidar_maps import LidarMaps, MapBuildConfig, build_lidar_maps, fit_plane
+    from jaxloc.mapping.lidar_maps import (
+        LidarMaps as LidarMaps,
+        MapBuildConfig as MapBuildConfig,
+        build_lidar_maps as build_lidar_maps,
+        fit_plane as fit_plane,
+    )
     from jaxloc.mapping.scene_graphs import (
-        DEFAULT_TARGET_VERTICES,
-        class_embeddings,
-        decimate,
-        onehot_classes,
-        scene_graph_from_reconstruction,
+        DEFAULT_TARGET_VERTICES as DEFAULT_TARGET_VERTICES,
+        class_embeddings as class_embeddings,
+        decimate as decimate,
+        onehot_classes as onehot_classes,
+        scene_graph_from_reconstruction as scene_graph_from_reconstruction,
     )
 
-__all__ = [
-    "DEFAULT_TARGET_VERTICES",
-    "LidarMaps",
-    "MapBuildConfig",
-    "build_lidar_maps",
-    "class_embeddings",
-    "decimate",
-    "fit_plane",
-    "onehot_classes",
-    "scene_graph_from_reconstruction",
-]
+__all__ = public_names(__file__)

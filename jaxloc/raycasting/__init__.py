@@ -11,18 +11,21 @@
   triangle, JAX recomputes the distance, barycentric coordinates and object differentiably.
 """
 
-from jaxloc.raycasting.bvh import BVHScene, FlatBVH, build_bvh
-from jaxloc.raycasting.engines import ENGINES, clear_caches, resolve_engine
-from jaxloc.raycasting.hits import RayHit, hit_triangles, raycast
+from jaxloc._lazy import public_names
+from jaxloc.raycasting.bvh import (
+    BVHScene as BVHScene,
+    FlatBVH as FlatBVH,
+    build_bvh as build_bvh,
+)
+from jaxloc.raycasting.engines import (
+    ENGINES as ENGINES,
+    clear_caches as clear_caches,
+    resolve_engine as resolve_engine,
+)
+from jaxloc.raycasting.hits import (
+    RayHit as RayHit,
+    hit_triangles as hit_triangles,
+    raycast as raycast,
+)
 
-__all__ = [
-    "ENGINES",
-    "BVHScene",
-    "FlatBVH",
-    "RayHit",
-    "build_bvh",
-    "clear_caches",
-    "hit_triangles",
-    "raycast",
-    "resolve_engine",
-]
+__all__ = public_names(__file__)

@@ -24,71 +24,60 @@ The stages live in private modules (``_sequence``, ``_rendering``, ``_particles`
 
 from typing import TYPE_CHECKING
 
-from jaxloc._lazy import lazy_exports, renamed_modules
+from jaxloc._lazy import lazy_exports, public_names, renamed_modules
 
-__all__ = [
-    "PAPER_HEIGHTS",
-    "ConfidenceModel",
-    "Frame",
-    "FrameSequence",
-    "KLDConfig",
-    "ObservationConfig",
-    "ParticleState",
-    "Region",
-    "Render",
-    "SG2LocConfig",
-    "SG2LocResult",
-    "StepConfig",
-    "StepInfo",
-    "Verdict",
-    "VerdictConfig",
-    "carry_back",
-    "check_ssim_strides",
-    "default_verdict",
-    "figures",
-    "frames_on_grid",
-    "kld_for_capacity",
-    "learn",
-    "localize",
-    "online",
-    "refine",
-    "render",
-    "render_batch",
-    "retrieval",
-    "run_pass",
-    "sharded",
-    "step",
-    "warm_up",
-]
+__all__ = public_names(__file__)
 
 if TYPE_CHECKING:  # where each public name comes from (jaxloc._lazy imports it on first use)
-    from jaxloc.sg2loc import figures, learn, online, refine, retrieval, sharded
+    from jaxloc.sg2loc import (
+        figures as figures,
+        learn as learn,
+        online as online,
+        refine as refine,
+        retrieval as retrieval,
+        sharded as sharded,
+    )
     from jaxloc.sg2loc._filter import (
-        Frame,
-        Region,
-        StepConfig,
-        StepInfo,
-        frames_on_grid,
-        run_pass,
-        step,
+        Frame as Frame,
+        Region as Region,
+        StepConfig as StepConfig,
+        StepInfo as StepInfo,
+        frames_on_grid as frames_on_grid,
+        run_pass as run_pass,
+        step as step,
     )
     from jaxloc.sg2loc._localization import (
-        SG2LocConfig,
-        SG2LocResult,
-        carry_back,
-        localize,
-        warm_up,
+        SG2LocConfig as SG2LocConfig,
+        SG2LocResult as SG2LocResult,
+        carry_back as carry_back,
+        localize as localize,
+        warm_up as warm_up,
     )
-    from jaxloc.sg2loc._particles import PAPER_HEIGHTS, ParticleState
-    from jaxloc.sg2loc._rendering import Render, render, render_batch
-    from jaxloc.sg2loc._resampling import KLDConfig, kld_for_capacity
-    from jaxloc.sg2loc._scores import ObservationConfig, check_ssim_strides
-    from jaxloc.sg2loc._sequence import FrameSequence
+    from jaxloc.sg2loc._particles import (
+        PAPER_HEIGHTS as PAPER_HEIGHTS,
+        ParticleState as ParticleState,
+    )
+    from jaxloc.sg2loc._rendering import (
+        Render as Render,
+        render as render,
+        render_batch as render_batch,
+    )
+    from jaxloc.sg2loc._resampling import (
+        KLDConfig as KLDConfig,
+        kld_for_capacity as kld_for_capacity,
+    )
+    from jaxloc.sg2loc._scores import (
+        ObservationConfig as ObservationConfig,
+        check_ssim_strides as check_ssim_strides,
+    )
+    from jaxloc.sg2loc._sequence import (
+        FrameSequence as FrameSequence,
+    )
     from jaxloc.sg2loc._verdict import (
-        ConfidenceModel,
-        Verdict,
-        VerdictConfig,
-        default_verdict,
+        ConfidenceModel as ConfidenceModel,
+        Verdict as Verdict,
+        VerdictConfig as VerdictConfig,
+        default_verdict as default_verdict,
     )
 
 #: The stage modules of jaxloc 0.2, private now: ``import jaxloc.sg2loc.filter`` and

@@ -71,60 +71,40 @@ a fixed particle set is exactly the product of the likelihoods above, so holding
 differentiates the part of the filter that the parameters control, without these problems.
 """
 
+from jaxloc._lazy import public_names
 from jaxloc.sg2loc.learn.losses import (
-    batch_loss,
-    config_log_likelihood,
-    expected_position_error,
-    prefix_log_weights,
-    window_log_weights,
-    window_loss,
+    batch_loss as batch_loss,
+    config_log_likelihood as config_log_likelihood,
+    expected_position_error as expected_position_error,
+    prefix_log_weights as prefix_log_weights,
+    window_log_weights as window_log_weights,
+    window_loss as window_loss,
 )
 from jaxloc.sg2loc.learn.params import (
-    LOG_BOUND,
-    LOSS_FRAMES,
-    LOSS_KINDS,
-    LikelihoodParams,
-    LossConfig,
+    LOG_BOUND as LOG_BOUND,
+    LOSS_FRAMES as LOSS_FRAMES,
+    LOSS_KINDS as LOSS_KINDS,
+    LikelihoodParams as LikelihoodParams,
+    LossConfig as LossConfig,
 )
-from jaxloc.sg2loc.learn.training import History, TrainState, adam, make_train_step, train
+from jaxloc.sg2loc.learn.training import (
+    History as History,
+    TrainState as TrainState,
+    adam as adam,
+    make_train_step as make_train_step,
+    train as train,
+)
 from jaxloc.sg2loc.learn.windows import (
-    LOCAL_HALF_WIDTH,
-    LOCAL_YAW_HALF_RANGE,
-    Windows,
-    concat_windows,
-    filter_windows,
-    score_particle_set,
-    score_particles,
-    score_window,
-    sequence_windows,
-    window_particles,
+    LOCAL_HALF_WIDTH as LOCAL_HALF_WIDTH,
+    LOCAL_YAW_HALF_RANGE as LOCAL_YAW_HALF_RANGE,
+    Windows as Windows,
+    concat_windows as concat_windows,
+    filter_windows as filter_windows,
+    score_particle_set as score_particle_set,
+    score_particles as score_particles,
+    score_window as score_window,
+    sequence_windows as sequence_windows,
+    window_particles as window_particles,
 )
 
-__all__ = [
-    "LOCAL_HALF_WIDTH",
-    "LOCAL_YAW_HALF_RANGE",
-    "LOG_BOUND",
-    "LOSS_FRAMES",
-    "LOSS_KINDS",
-    "History",
-    "LikelihoodParams",
-    "LossConfig",
-    "TrainState",
-    "Windows",
-    "adam",
-    "batch_loss",
-    "concat_windows",
-    "config_log_likelihood",
-    "expected_position_error",
-    "filter_windows",
-    "make_train_step",
-    "prefix_log_weights",
-    "score_particle_set",
-    "score_particles",
-    "score_window",
-    "sequence_windows",
-    "train",
-    "window_log_weights",
-    "window_loss",
-    "window_particles",
-]
+__all__ = public_names(__file__)

@@ -71,54 +71,35 @@ for depth alone at the refined pose, but 0.72-0.84 for matches with 20 % outlier
 Coarse meshes of real objects will sit lower; measure it on your own data before setting it.
 """
 
+from jaxloc._lazy import public_names
 from jaxloc.sg2loc.refine.config import (
-    STATUS_BAD_INPUT,
-    STATUS_CONVERGED,
-    STATUS_DEGENERATE,
-    STATUS_DIVERGED,
-    STATUS_NOT_CONVERGED,
-    STATUS_POOR_FIT,
-    STATUS_TOO_FEW_RESIDUALS,
-    Observations,
-    RefineConfig,
-    RefineResult,
+    STATUS_BAD_INPUT as STATUS_BAD_INPUT,
+    STATUS_CONVERGED as STATUS_CONVERGED,
+    STATUS_DEGENERATE as STATUS_DEGENERATE,
+    STATUS_DIVERGED as STATUS_DIVERGED,
+    STATUS_NOT_CONVERGED as STATUS_NOT_CONVERGED,
+    STATUS_POOR_FIT as STATUS_POOR_FIT,
+    STATUS_TOO_FEW_RESIDUALS as STATUS_TOO_FEW_RESIDUALS,
+    Observations as Observations,
+    RefineConfig as RefineConfig,
+    RefineResult as RefineResult,
 )
 from jaxloc.sg2loc.refine.frames import (
-    correspondences,
-    depth_samples,
-    frame_poses_from_last,
-    refine,
-    refine_frame,
+    correspondences as correspondences,
+    depth_samples as depth_samples,
+    frame_poses_from_last as frame_poses_from_last,
+    refine as refine,
+    refine_frame as refine_frame,
 )
 from jaxloc.sg2loc.refine.residuals import (
-    DepthPlanes,
-    associate_depth,
-    depth_residuals,
-    point_to_plane,
-    reprojection_residuals,
+    DepthPlanes as DepthPlanes,
+    associate_depth as associate_depth,
+    depth_residuals as depth_residuals,
+    point_to_plane as point_to_plane,
+    reprojection_residuals as reprojection_residuals,
 )
-from jaxloc.sg2loc.refine.solve import refine_pose
+from jaxloc.sg2loc.refine.solve import (
+    refine_pose as refine_pose,
+)
 
-__all__ = [
-    "STATUS_BAD_INPUT",
-    "STATUS_CONVERGED",
-    "STATUS_DEGENERATE",
-    "STATUS_DIVERGED",
-    "STATUS_NOT_CONVERGED",
-    "STATUS_POOR_FIT",
-    "STATUS_TOO_FEW_RESIDUALS",
-    "DepthPlanes",
-    "Observations",
-    "RefineConfig",
-    "RefineResult",
-    "associate_depth",
-    "correspondences",
-    "depth_residuals",
-    "depth_samples",
-    "frame_poses_from_last",
-    "point_to_plane",
-    "refine",
-    "refine_frame",
-    "refine_pose",
-    "reprojection_residuals",
-]
+__all__ = public_names(__file__)

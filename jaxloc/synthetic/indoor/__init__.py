@@ -26,47 +26,35 @@ unchanged room (:attr:`Episode.scene`). A look-alike wrong place
 their class: the negatives of SG2Loc's verdict.
 """
 
+from jaxloc._lazy import public_names
 from jaxloc.synthetic.indoor.config import (
-    ChangeConfig,
-    EpisodeConfig,
-    RoomConfig,
-    SensorConfig,
-    TrajectoryConfig,
+    ChangeConfig as ChangeConfig,
+    EpisodeConfig as EpisodeConfig,
+    RoomConfig as RoomConfig,
+    SensorConfig as SensorConfig,
+    TrajectoryConfig as TrajectoryConfig,
 )
-from jaxloc.synthetic.indoor.export import write_scannet_export
-from jaxloc.synthetic.indoor.lookalike import make_lookalike_episode
-from jaxloc.synthetic.indoor.merge import MergedRooms, merge_rooms
+from jaxloc.synthetic.indoor.export import (
+    write_scannet_export as write_scannet_export,
+)
+from jaxloc.synthetic.indoor.lookalike import (
+    make_lookalike_episode as make_lookalike_episode,
+)
+from jaxloc.synthetic.indoor.merge import (
+    MergedRooms as MergedRooms,
+    merge_rooms as merge_rooms,
+)
 from jaxloc.synthetic.indoor.rooms import (
-    CLASS_NAMES,
-    Episode,
-    Room,
-    SceneChanges,
-    change_room,
-    episode_in_room,
-    make_episode,
-    make_room,
-    object_embeddings,
-    scene_graph,
+    CLASS_NAMES as CLASS_NAMES,
+    Episode as Episode,
+    Room as Room,
+    SceneChanges as SceneChanges,
+    change_room as change_room,
+    episode_in_room as episode_in_room,
+    make_episode as make_episode,
+    make_room as make_room,
+    object_embeddings as object_embeddings,
+    scene_graph as scene_graph,
 )
 
-__all__ = [
-    "CLASS_NAMES",
-    "ChangeConfig",
-    "Episode",
-    "EpisodeConfig",
-    "MergedRooms",
-    "Room",
-    "RoomConfig",
-    "SceneChanges",
-    "SensorConfig",
-    "TrajectoryConfig",
-    "change_room",
-    "episode_in_room",
-    "make_episode",
-    "make_lookalike_episode",
-    "make_room",
-    "merge_rooms",
-    "object_embeddings",
-    "scene_graph",
-    "write_scannet_export",
-]
+__all__ = public_names(__file__)
