@@ -172,6 +172,44 @@ def test_an_m2loc_drive_reads_back_as_logged(tmp_path):
                                atol=1e-5)  # fmt: skip
     errors = _rows(found["/plots/position_error_m"], "Scalars:scalars")
     np.testing.assert_allclose(np.ravel(errors), [0.5], atol=1e-6)
+    origins, eye = _layout(path)  # the map from above one side, its centre in view
+    assert origins == ["plots/localized", "plots/position_error_m", "plots/rotation_error_deg",
+                       "world"]  # fmt: skip
+    assert eye["position"][2] > instance_map.points[:, 2].max() + 50
+
+
+def _layout(path) -> tuple[list[str], dict[str, np.ndarray]]:
+    """The views' origins and the 3D view's eye (``position``, ``look_target``) of the recording's
+    default layout (its blueprint store)."""
+    reader = rerun_chunk.RrdReader(path)
+    (store,) = reader.blueprints()
+    origins, eye = [], {}
+    for chunk in reader.stream(store=store).to_chunks():
+        batch = chunk.to_record_batch()
+        if "ViewBlueprint:space_origin" in batch.schema.names:
+            origins += [row[0] for row in batch.column("ViewBlueprint:space_origin").to_pylist()]
+        for key in ("position", "look_target"):
+            if f"EyeControls3D:{key}" in batch.schema.names:
+                eye[key] = np.asarray(batch.column(f"EyeControls3D:{key}").to_pylist()[0][0])
+    return sorted(origins), eye
+
+
+def test_a_recording_opens_on_its_layout_and_reads_as_any_file(sg2loc_run, tmp_path):
+    """The default layout: the world in 3D (seen from inside the map's and the trajectory's
+    bounds, looking at the trajectory), the colour and depth images, the plots; the file's mode
+    is the other writers'."""
+    scene, result, sequence, poses_gt = sg2loc_run
+    path = write_rerun(tmp_path / "run.rrd", scene, result, sequence, poses_gt)
+    assert path.stat().st_mode & 0o777 == 0o644
+    origins, eye = _layout(path)
+    plots = ["plots/localized", "plots/position_error_m", "plots/rotation_error_deg"]
+    assert origins == sorted([*plots, "world", "world/camera/image", "world/camera/image"])
+    np.testing.assert_allclose(eye["look_target"], result.poses[:, :3].mean(0), atol=1e-5)
+    vertices = np.asarray(scene.triangles)[np.asarray(scene.triangle_object) >= 0].reshape(-1, 3)
+    corners = np.concatenate([vertices, result.poses[:, :3]])  # the map and the trajectory
+    assert (corners.min(0) < eye["position"]).all() and (eye["position"] < corners.max(0)).all()
+    origins, _ = _layout(write_rerun(tmp_path / "bare.rrd", scene, result))
+    assert origins == ["plots/localized", "world"]  # no frames, no ground truth
 
 
 def test_without_rerun_the_writer_says_how_to_install_it(sg2loc_run, tmp_path, monkeypatch):

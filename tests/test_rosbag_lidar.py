@@ -145,6 +145,35 @@ def test_localize_drive_on_a_bag_gives_the_folder_s_flags_and_poses(
         np.testing.assert_allclose(rotation, pose[:3, :3], atol=1e-6)  # float32 estimates
 
 
+def test_build_lidar_map_on_a_bag_is_the_folder_s_map(scans, written, tmp_path, capsys):
+    """``jaxloc build-lidar-map BAG``: the folder's instance and road-normal files, the scans
+    placed by the bag's odometry or by ``--gt``; a bag option on a folder and a folder option on a
+    bag are one line each."""
+    gt = tmp_path / "gt.tum"
+    poses = zip(STAMPS, scans.T_map_scan, strict=True)
+    gt.write_text("".join(tum_line(format_ns_as_seconds(t), p) + "\n" for t, p in poses))
+    common = ["--every", "2", "--no-progress"]
+    runs = {"folder": [written["folder"]], "odometry": [written["mcap"]],
+            "gt": [written["mcap"], "--gt", gt]}  # fmt: skip
+    for name, source in runs.items():
+        assert main([str(a) for a in ["build-lidar-map", *source, tmp_path / name, *common]]) == 0
+    assert "placed by its odometry" in capsys.readouterr().out
+    files = ["instances/15.txt", "instances/17.txt", "instances/18.txt", "RSN/road_normal.txt"]
+    for name in ("odometry", "gt"):
+        for file in files:
+            expected = np.loadtxt(tmp_path / "folder" / file, ndmin=2)
+            np.testing.assert_allclose(np.loadtxt(tmp_path / name / file, ndmin=2), expected,
+                                       atol=1e-6, err_msg=f"{name}: {file}")  # fmt: skip
+    assert sum(len(np.loadtxt(tmp_path / "gt" / f, ndmin=2)) for f in files[:3]) >= 5
+    for argv, expected in (
+        ([written["folder"], tmp_path / "x", "--topic", "/points"], "--topic: only for a bag"),
+        ([written["mcap"], tmp_path / "y", "--sensor", "Ouster"], "--sensor: only for a sequence"),
+    ):
+        assert main([str(a) for a in ["build-lidar-map", *argv]]) == 2
+        error = capsys.readouterr().err.strip()
+        assert "\n" not in error and expected in error, error
+
+
 def test_localize_lidar_on_a_bag_writes_its_poses_as_a_bag(triplet_map, scans, tmp_path, capsys):
     """``jaxloc localize-lidar`` on an MCAP bag of two cloud topics (``--topic`` names one), its
     windows fused through the bag's own odometry: the library's flags and poses, written with

@@ -1,4 +1,5 @@
-"""``jaxloc build-lidar-map``: instance and road-normal maps from a labelled LiDAR sequence."""
+"""``jaxloc build-lidar-map``: instance and road-normal maps from labelled LiDAR scans (a sequence
+folder or a bag)."""
 
 from __future__ import annotations
 
@@ -10,11 +11,12 @@ import numpy as np
 
 from jaxloc.cli._errors import InputError, reading
 from jaxloc.cli._lidar import add_triplet_options, check_save_path, describe_map, triplet_config
-from jaxloc.cli._lidar_scans import add_sequence_options, open_sequence
+from jaxloc.cli._lidar_scans import BAG_OPTIONS, add_sequence_options, open_sequence
 from jaxloc.cli._options import command, positive_int
 
 DESCRIPTION = """\
-Instance and road-normal maps from a labelled LiDAR sequence (SemanticKITTI, plain, HeLiPR).
+Instance and road-normal maps from a labelled LiDAR sequence (SemanticKITTI, plain, HeLiPR) or
+a ROS bag of labelled clouds (ROS 1 .bag, ROS 2 bag folder, .mcap).
 
 TripletLoc's way (jaxloc.mapping.MapBuildConfig): trunk, pole and traffic-sign points of every
 K-th scan clustered into instances fused across scans; a robust road plane per cell.
@@ -32,6 +34,8 @@ HeLiPR / TripletLoc (the map frame: the GT's world frame; scans without a GT sta
   SEQ_DIR/LiDAR/<sensor>/<stamp>.bin   Ouster, Velodyne, Avia, Aeva or Ouster_filterd records
   SEQ_DIR/labels/<stamp>.label         uint16 class id (15 trunk, 17 pole, 18 sign) + instance
   SEQ_DIR/LiDAR_GT/<Sensor>_gt.txt     lines "stamp x y z qx qy qz qw"
+a bag (the map frame: its poses' frame): labelled sensor_msgs/PointCloud2 as localize-lidar reads
+  them, placed by --gt FILE or --gt-topic TOPIC, else by the bag's odometry (--odometry-topic)
 
 OUT_DIR receives instances/15.txt, 17.txt, 18.txt (lines "id x y z") and RSN/road_normal.txt
 (lines "x y nx ny nz std_deg"), the format localize-lidar reads; nothing unless all succeeds.
@@ -43,6 +47,7 @@ examples:
   jaxloc build-lidar-map dataset/sequences/00 maps/kitti00 --every 10 --save-map kitti00.npz
   jaxloc localize-lidar maps/kitti00 dataset/sequences/00 --every 50
   jaxloc build-lidar-map HeLiPR/KAIST04 maps/KAIST04 --sensor Ouster --every 30
+  jaxloc build-lidar-map drive.mcap maps/drive --gt slam.tum --every 10
 
 --save-map FILE also describes the built map (m2loc_config's settings, or the localization
 settings given) and saves it: localize-lidar then loads it in a second instead of describing it.
@@ -52,7 +57,7 @@ settings given) and saves it: localize-lidar then loads it in a second instead o
 def add_parser(commands) -> None:
     """Register ``build-lidar-map`` on the ``jaxloc`` subcommand parsers."""
     build = command(commands, "build-lidar-map", DESCRIPTION, EPILOG)
-    build.add_argument("seq_dir", type=Path, metavar="SEQ_DIR", help="labelled sequence folder")
+    build.add_argument("seq_dir", type=Path, metavar="SEQ_DIR", help="labelled sequence or bag")
     build.add_argument("out_dir", type=Path, metavar="OUT_DIR", help="map folder to write")
     build.add_argument(
         "--every", type=positive_int, help="use every K-th scan (default MapBuildConfig.every)"
@@ -60,6 +65,8 @@ def add_parser(commands) -> None:
     build.add_argument("--save-map", type=Path, metavar="FILE", help="also save it described")
     build.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_sequence_options(build)
+    build.add_argument("--gt", type=Path, metavar="FILE", help="a bag's poses: a pose file")
+    BAG_OPTIONS.add(build, "a bag SEQ_DIR (defaults: the bag's)")
     add_triplet_options(build)
 
 
@@ -77,11 +84,15 @@ def run_build_lidar_map(args: argparse.Namespace) -> int:
     from jaxloc.mapping import MapBuildConfig, build_lidar_maps
 
     start = time.perf_counter()
-    sequence = open_sequence(args.seq_dir, args)
+    sequence, layout = open_scans(args)
     config = MapBuildConfig() if args.every is None else MapBuildConfig(every=args.every)
-    used = len(sequence.bins[:: config.every])
-    with reading(), tqdm(total=used, unit="scan", disable=args.no_progress) as bar:
+    total = len(sequence) if hasattr(sequence, "bag") else len(sequence.bins)
+    with (
+        reading(),
+        tqdm(total=-(-total // config.every), unit="scan", disable=args.no_progress) as bar,
+    ):
         maps = build_lidar_maps(sequence, config, bar.update)
+    used = len(maps.scans_used)
     instances, normals = maps.instances, maps.road_normals
     triplet_map = None
     if args.save_map is not None:  # describe before writing anything: a bad map writes nothing
@@ -95,11 +106,32 @@ def run_build_lidar_map(args: argparse.Namespace) -> int:
     counts = ", ".join(
         f"{int(np.sum(instances.labels == c))} x {c}" for c in sorted(set(instances.labels))
     )
-    layout = sequence.layout + (f", {sequence.sensor}" if sequence.sensor else "")
     print(
-        f"{args.seq_dir} ({layout}): {used} of {len(sequence.bins)} scans used -> "
+        f"{args.seq_dir} ({layout}): {used} of {total} scans used -> "
         f"{len(instances.points)} instances ({counts}), {len(normals.xy)} road-normal cells, "
         f"in {time.perf_counter() - start:.1f} s; wrote {args.out_dir}/instances/*.txt and "
         f"{args.out_dir}/RSN/road_normal.txt" + (f" and {args.save_map}" if args.save_map else "")
     )
     return 0
+
+
+def open_scans(args: argparse.Namespace):
+    """``(scans, description)``: a bag SEQ_DIR as a :class:`jaxloc.io.LidarRecording` placed by
+    ``--gt``/``--gt-topic`` or its odometry, else the sequence folder; the bag options on a folder
+    (and the folder options on a bag) are one-line errors."""
+    from jaxloc import io
+    from jaxloc.io._rosbag import is_bag
+
+    bag_options = {**BAG_OPTIONS.values(args), **({"gt": args.gt} if args.gt else {})}
+    if not is_bag(args.seq_dir):
+        if bag_options:
+            flags = ", ".join("--" + k.replace("_", "-") for k in bag_options)
+            raise InputError(f"{flags}: only for a bag SEQ_DIR; {args.seq_dir} is a folder")
+        sequence = open_sequence(args.seq_dir, args)
+        return sequence, sequence.layout + (f", {sequence.sensor}" if sequence.sensor else "")
+    if args.format is not None or args.sensor is not None:
+        raise InputError(f"--format, --sensor: only for a sequence folder; {args.seq_dir} is a bag")
+    with reading():
+        recording = io.open_lidar_recording(args.seq_dir, **bag_options)
+    placed = "ground truth" if recording.poses is not None else "odometry"
+    return recording, f"{recording.bag.topic}, placed by its {placed}"

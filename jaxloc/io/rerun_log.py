@@ -81,27 +81,80 @@ def _verdict_colors(verdict) -> np.ndarray:
 
 
 @contextmanager
-def rrd_recording(path: str | os.PathLike, application_id: str = "jaxloc") -> Iterator:
+def rrd_recording(
+    path: str | os.PathLike, application_id: str = "jaxloc", blueprint=None
+) -> Iterator:
     """A ``rerun.RecordingStream`` saving to ``path`` (written atomically when the block ends:
-    a temporary file in its folder, renamed over ``path``), its ``world`` frame z up."""
+    a temporary file in its folder, renamed over ``path``), its ``world`` frame z up; the viewer
+    opens it with ``blueprint`` (a ``rerun.blueprint.Blueprint``, e.g. :func:`default_layout`;
+    None: the viewer's own guess)."""
     rr = require_rerun()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     os.close(fd)
     rec = rr.RecordingStream(application_id)
-    rec.save(tmp)
+    rec.save(tmp, default_blueprint=blueprint)
     try:
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         yield rec
         rec.flush()
         rec.disconnect()
+        os.chmod(tmp, 0o644)  # as the other writers: mkstemp's file is readable by its owner only
         os.replace(tmp, path)
     except BaseException:
         rec.disconnect()
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def default_layout(
+    bounds,
+    *,
+    focus=None,
+    inside: bool = False,
+    rgb: bool = False,
+    depth: bool = False,
+    errors: bool = False,
+):
+    """The layout a recording of :func:`write_rerun` or :func:`write_drive_rerun` opens with: the
+    world in 3D, seen from above one side of the map, beside the camera's images and the
+    per-frame plots.
+
+    Args:
+        bounds: (2, 3) the map's corners (world frame, metres): the 3D view looks at their centre
+            from a distance that shows them whole.
+        focus: (3,) the point the 3D view looks at (default: the bounds' centre), e.g. the
+            trajectory's centre.
+        inside: look from inside the bounds, from the top corner farthest from ``focus`` (a room,
+            whose walls and ceiling would hide the rest), instead of from above one side (a drive).
+        rgb: whether the recording holds the camera's colour images (a 2D view).
+        depth: whether it holds the camera's depth images (a 2D view).
+        errors: whether it holds the position and rotation errors (a ground truth).
+
+    Returns:
+        A ``rerun.blueprint.Blueprint``.
+    """
+    require_rerun()
+    import rerun.blueprint as rrb
+
+    low, high = np.asarray(bounds, np.float64)
+    centre = (low + high) / 2 if focus is None else np.asarray(focus, np.float64)
+    size = max(float(np.max(high[:2] - low[:2])), 1.0)
+    position = centre + np.array([0.0, -0.9, 1.1]) * size
+    if inside:  # the top corner farthest from the focus, inset a little
+        corners = np.array([[x, y, 0.9] for x in (0.05, 0.95) for y in (0.05, 0.95)])
+        corners = low + corners * (high - low)
+        position = corners[np.argmax(np.linalg.norm(corners[:, :2] - centre[:2], axis=1))]
+    eye = rrb.EyeControls3D(position=position, look_target=centre, eye_up=(0, 0, 1))
+    world = rrb.Spatial3DView(origin="world", name="map, particles, trajectories", eye_controls=eye)
+    image = "world/camera/image"
+    side = [rrb.Spatial2DView(origin=image, contents="$origin/rgb", name="colour")] if rgb else []
+    side += [rrb.Spatial2DView(origin=image, contents="$origin/depth", name="depth")] * depth
+    plots = ["localized"] + ["position_error_m", "rotation_error_deg"] * errors
+    side.append(rrb.Tabs(*(rrb.TimeSeriesView(origin=f"plots/{p}", name=p) for p in plots)))
+    return rrb.Blueprint(rrb.Horizontal(world, rrb.Vertical(*side), column_shares=[3, 2]))
 
 
 def _set_frame(rec, t: int, timestamps) -> None:
@@ -145,17 +198,26 @@ def log_instance_map(rec, instance_map, entity: str = "world/map/instances") -> 
     :class:`~jaxloc.io.InstanceMap` (``points`` (N, 3) metres, ``labels`` (N,) class ids) or a
     :class:`~jaxloc.m2loc.TripletMap` (its vertices plus ``origin``, its classes' ids)."""
     rr = require_rerun()
-    if hasattr(instance_map, "labels"):
-        points, labels = np.asarray(instance_map.points), np.asarray(instance_map.labels)
-    else:
-        points = np.asarray(instance_map.points, np.float64) + np.asarray(instance_map.origin)
-        classes = np.asarray(instance_map.config.descriptor.classes)
-        labels = classes[np.asarray(instance_map.classes)]
+    points, labels = _map_points(instance_map)
     rec.log(
         entity,
-        rr.Points3D(points, colors=class_colors(labels), class_ids=_class_ids(labels), radii=0.4),
+        rr.Points3D(
+            points,
+            colors=class_colors(labels),
+            class_ids=_class_ids(labels),
+            radii=rr.Radius.ui_points(3.0),
+        ),
         static=True,
     )
+
+
+def _map_points(instance_map) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) world-frame centroids and (N,) class ids of an instance map or a triplet map."""
+    if hasattr(instance_map, "labels"):
+        return np.asarray(instance_map.points), np.asarray(instance_map.labels)
+    points = np.asarray(instance_map.points, np.float64) + np.asarray(instance_map.origin)
+    classes = np.asarray(instance_map.config.descriptor.classes)
+    return points, classes[np.asarray(instance_map.classes)]
 
 
 def _weight_colors(weights: np.ndarray) -> np.ndarray:
@@ -351,7 +413,18 @@ def write_rerun(
         timestamps = sequence.timestamps if timestamps is None else timestamps
         sequence = sequence.sequence
     poses = np.asarray(result.poses if hasattr(result, "poses") else result.pose, np.float64)
-    with rrd_recording(path, application_id) as rec:
+    owner = np.asarray(scene.triangle_object)
+    vertices = np.asarray(scene.triangles)[(owner >= 0) & (owner < scene.num_objects)]
+    vertices = np.concatenate([vertices.reshape(-1, 3), poses[:, :3]])
+    layout = default_layout(
+        [vertices.min(0), vertices.max(0)],
+        focus=poses[:, :3].mean(0),
+        inside=True,
+        rgb=sequence is not None and sequence.rgb is not None,
+        depth=sequence is not None and sequence.depth is not None,
+        errors=poses_gt is not None,
+    )
+    with rrd_recording(path, application_id, layout) as rec:
         log_scene_graph(rec, scene)
         if hasattr(result, "particles"):
             log_particles(rec, result, timestamps=timestamps, max_particles=max_particles)
@@ -401,7 +474,9 @@ def write_drive_rerun(
     poses = np.asarray(drive.poses, np.float64)
     gt = None if poses_gt is None else np.asarray(poses_gt, np.float64)
     names = [TrackStatus(int(s)).name.lower() for s in np.asarray(drive.status)]
-    with rrd_recording(path, application_id) as rec:
+    corners = np.concatenate([_map_points(instance_map)[0], poses[valid, :3, 3]])
+    layout = default_layout([corners.min(0), corners.max(0)], errors=gt is not None)
+    with rrd_recording(path, application_id, layout) as rec:
         log_instance_map(rec, instance_map)
         has_gt = np.ones(len(poses), bool) if has_gt is None else np.asarray(has_gt, bool)
         log_trajectory(rec, poses, gt, valid, timestamps=timestamps, labels=names,
@@ -416,7 +491,10 @@ def write_drive_rerun(
             rec.log(
                 "world/scan/instances",
                 rr.Points3D(
-                    points, colors=class_colors(labels), class_ids=_class_ids(labels), radii=0.3
+                    points,
+                    colors=class_colors(labels),
+                    class_ids=_class_ids(labels),
+                    radii=rr.Radius.ui_points(6.0),
                 ),
             )
     return Path(path)

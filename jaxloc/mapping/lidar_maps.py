@@ -1,6 +1,8 @@
 """Instance and road-surface-normal maps built from a labelled LiDAR sequence (TripletLoc's recipe).
 
-Every ``every``-th scan is read; its trunk, pole and traffic-sign points are clustered into
+The scans come from a sequence folder (:class:`~jaxloc.io.LidarSequence`) or any recording of
+:func:`jaxloc.io.open_lidar_recording` (a bag among them), placed by their poses. Every
+``every``-th scan is read; its trunk, pole and traffic-sign points are clustered into
 instance centroids (:func:`cluster_instances`: 0.1 m voxels, 0.5 m euclidean clusters of >= 20
 voxel points), moved to the map frame with the scan's pose, and the centroids of all scans are
 fused within ``fuse_radius`` (0.5 m, transitively; mean position, the label of the member with
@@ -20,10 +22,12 @@ holds (``x y nx ny nz std_deg``).
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import NamedTuple
 
 import numpy as np
 
+from jaxloc.io.lidar_recording import LidarRecording
 from jaxloc.io.lidar_sequence import LidarSequence, read_sequence_scan
 from jaxloc.m2loc import ClusterConfig, Instances, RoadNormals, cluster_instances
 from jaxloc.m2loc._clusters import euclidean_clusters, fuse_instances, voxel_downsample
@@ -143,16 +147,18 @@ def fuse_road_cells(xy: np.ndarray, normals: np.ndarray, radius: float) -> RoadN
 
 
 def build_lidar_maps(
-    sequence: LidarSequence,
+    sequence: LidarSequence | LidarRecording,
     config: MapBuildConfig | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> LidarMaps:
     """Instance map and RSN map of a labelled sequence (see the module docstring).
 
     Args:
-        sequence: scans and their ``T_map_scan`` poses
-            (:func:`~jaxloc.io.lidar_sequence.open_lidar_sequence`; any layout: each scan is read
-            by :func:`jaxloc.io.lidar_sequence.read_sequence_scan`).
+        sequence: the scans and their ``T_map_scan`` poses: a sequence folder
+            (:func:`~jaxloc.io.lidar_sequence.open_lidar_sequence`, any layout) or a recording
+            (:func:`~jaxloc.io.open_lidar_recording`: a bag, folders, scan files), placed by its
+            poses (a bag's ``gt=`` or ``gt_topic=``), else by its own odometry (a bag's: the map
+            is then in the odometry's frame); scans without a pose are left out.
         config: build parameters.
         progress: called with 1 after each scan read (e.g. a tqdm bar's ``update``).
 
@@ -163,13 +169,13 @@ def build_lidar_maps(
     config = MapBuildConfig() if config is None else config
     if config.every < 1:
         raise ValueError(f"every must be >= 1, got {config.every}")
-    if sequence.T_map_scan is None:
-        raise ValueError(f"{sequence.root}: the sequence has no poses")
-    used = np.arange(0, len(sequence.bins), config.every)
+    read, poses, has_pose, name = _posed_scans(sequence)
+    used = np.arange(0, len(poses), config.every)
+    used = used[has_pose[used]]
     centroids, labels, sizes, cell_xy, cell_normals = [], [], [], [], []
     for index in used:
-        scan = read_sequence_scan(sequence, int(index))
-        pose = sequence.T_map_scan[index]
+        scan = read(int(index))
+        pose = poses[index]
         found = cluster_instances(scan.points, scan.labels, config.clusters)
         centroids.append(found.points @ pose[:3, :3].T + pose[:3, 3])
         labels.append(found.labels)
@@ -184,7 +190,7 @@ def build_lidar_maps(
     points = np.concatenate(centroids)
     if points.shape[0] == 0:
         raise ValueError(
-            f"{sequence.root}: no instance of the classes {config.clusters.classes} in the "
+            f"{name}: no instance of the classes {config.clusters.classes} in the "
             f"{used.size} scan(s) used (every {config.every})"
         )
     instances = fuse_instances(
@@ -194,3 +200,19 @@ def build_lidar_maps(
         np.concatenate(cell_xy), np.concatenate(cell_normals), config.normal_fuse_radius
     )
     return LidarMaps(instances, road_normals, used)
+
+
+def _posed_scans(source: LidarSequence | LidarRecording):
+    """``(read, poses, has_pose, name)``: ``read(i)`` gives scan i's labelled points, ``poses``
+    (N, 4, 4) its ``T_map_scan`` where ``has_pose`` (N,) bool, ``name`` the source for errors."""
+    if isinstance(source, LidarSequence):
+        if source.T_map_scan is None:
+            raise ValueError(f"{source.root}: the sequence has no poses")
+        poses = source.T_map_scan
+        return partial(read_sequence_scan, source), poses, np.ones(len(poses), bool), source.root
+    name = source.bag.path if source.bag is not None else source.paths[0]
+    if source.poses is not None:
+        return source.scan, source.poses, np.asarray(source.has_pose, bool), name
+    if source.odometry is None:
+        raise ValueError(f"{name}: no poses to place the scans by (gt=, gt_topic=, odometry)")
+    return source.scan, source.odometry, np.ones(len(source), bool), name
