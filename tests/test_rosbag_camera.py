@@ -6,6 +6,7 @@ truth, patch embeddings); bad bags are one line naming the bag and the topic."""
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import shutil
 
@@ -97,14 +98,7 @@ def camera_messages(
             out.append((COLOR, "sensor_msgs/msg/Image", stamp,
                         m.image(stamp, CAM_FRAME, pixels[colour], colour)))  # fmt: skip
         mm = np.asarray(Image.open(folder / "depth" / f"{t}.png")).astype(np.uint16)
-        out.append(
-            (
-                DEPTH,
-                "sensor_msgs/msg/Image",
-                stamp + 1000,
-                m.image(stamp + 1000, CAM_FRAME, mm, "16UC1", bigendian=t % 2 == 1),
-            )
-        )
+        out.append(_depth_message(m, stamp + 1000, mm, depth, bigendian=t % 2 == 1))
         out.append(("/camera/color/camera_info", "sensor_msgs/msg/CameraInfo", stamp,
                     m.camera_info(stamp, CAM_FRAME, K, (64, 48))))  # fmt: skip
         if labels is not None:
@@ -121,6 +115,42 @@ def camera_messages(
             msg = m.tf([(stamp, "odom", "base_link", T)])
             out.append(("/tf", "tf2_msgs/msg/TFMessage", stamp, msg))
     return out
+
+
+#: compressed_depth_image_transport's defaults: inverse-depth quantization and the farthest depth.
+DEPTH_QUANTIZATION, DEPTH_MAX = 100.0, 10.0
+
+
+def _depth_message(m, stamp, mm, depth, bigendian=False):
+    """The depth topic's message of ``mm`` millimetres: an ``Image`` (``depth`` "16UC1", or
+    "32FC1" in metres) or a PNG ``compressedDepth`` ``CompressedImage`` ("16UC1 compressedDepth",
+    "32FC1 compressedDepth"), coded as image_transport's compressed_depth plugin documents it."""
+    if depth == "16UC1":
+        return (
+            DEPTH,
+            "sensor_msgs/msg/Image",
+            stamp,
+            m.image(stamp, CAM_FRAME, mm, "16UC1", bigendian),
+        )
+    metres = mm.astype(np.float32) / 1000
+    if depth == "32FC1":
+        return DEPTH, "sensor_msgs/msg/Image", stamp, m.image(stamp, CAM_FRAME, metres, "32FC1")
+    encoding = depth.split()[0]
+    a = DEPTH_QUANTIZATION * (DEPTH_QUANTIZATION + 1)
+    b = 1 - a / DEPTH_MAX
+    if encoding == "16UC1":
+        pixels = mm
+    else:  # quantized inverse depth, truncated as C++ converts float to unsigned short
+        with np.errstate(divide="ignore"):
+            pixels = np.where((metres > 0) & (metres < DEPTH_MAX), a / metres + b, 0)
+        pixels = pixels.astype(np.uint16)
+    png = io.BytesIO()
+    Image.fromarray(pixels.astype(np.uint16)).save(png, format="PNG")
+    header = np.array([0], "<i4").tobytes() + np.array([a, b], "<f4").tobytes()
+    message = m.compressed(
+        stamp, CAM_FRAME, header + png.getvalue(), f"{encoding}; compressedDepth png"
+    )
+    return DEPTH + "/compressedDepth", "sensor_msgs/msg/CompressedImage", stamp, message
 
 
 def _embeddings_by_stamp(folder, target):
@@ -162,6 +192,24 @@ def test_a_bag_opens_to_the_folders_query(episode_folder, kind, tmp_path):
     resized = read_bag_camera_sequence(bag, width=32, odometry_topic="/odom",
                                        embeddings_dir=tmp_path / "e", step=2)  # fmt: skip
     _assert_same_query(resized, read_camera_sequence(folder, width=32, step=2), rgb_exact=False)
+
+
+@pytest.mark.parametrize("depth", ["16UC1 compressedDepth", "32FC1 compressedDepth"])
+def test_compressed_depth_reads_as_the_raw_depth(episode_folder, depth, tmp_path):
+    """PNG ``compressedDepth`` depth (image_transport's compressed_depth plugin): 16UC1 gives the
+    folder's millimetres exactly; 32FC1, coded as quantized inverse depth, within one quantization
+    step (``d**2 / a`` at depth ``d``)."""
+    root, folder, poses, _ = episode_folder
+    bag = write_bag(tmp_path / "rec", "mcap", camera_messages(folder, poses, "mcap", depth=depth))
+    embeddings = _embeddings_by_stamp(folder, tmp_path / "e")
+    recording = read_bag_camera_sequence(bag, embeddings_dir=embeddings)
+    reference = read_camera_sequence(folder)
+    far = float(np.max(reference.sequence.depth))
+    step = (
+        0.0 if depth.startswith("16") else far**2 / (DEPTH_QUANTIZATION * (DEPTH_QUANTIZATION + 1))
+    )
+    assert 0 < step < 0.01 or depth.startswith("16")
+    _assert_same_query(recording, reference, depth_atol=step + 1e-6)
 
 
 @pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "rgba8", "bgra8", "mono8"])
@@ -261,6 +309,13 @@ def test_bad_bags_are_one_line_naming_the_bag_and_topic(episode_folder, tmp_path
     message = _refused(tmp_path, "mcap", _replace(good, DEPTH, 0, encoding="8UC1"), DEPTH,
                        depth_topic=DEPTH)  # fmt: skip
     assert "depth encoding '8UC1'" in message and "16UC1 millimetres or 32FC1 metres" in message
+    packed = camera_messages(folder, poses, "mcap", depth="16UC1 compressedDepth")
+    rvl = _replace(packed, DEPTH + "/compressedDepth", 0, format="16UC1; compressedDepth rvl")
+    message = _refused(tmp_path, "mcap", rvl, DEPTH + "/compressedDepth")
+    assert "compressed depth '16UC1; compressedDepth rvl' is not read" in message
+    cut = _replace(packed, DEPTH + "/compressedDepth", 1, data=np.zeros(8, np.uint8))
+    message = _refused(tmp_path, "mcap", cut, DEPTH + "/compressedDepth")
+    assert "8 bytes, no compressedDepth image" in message
     later = Messages("ros1").header(STAMPS[0] - 1, CAM_FRAME)  # frame 2 stamped before frame 1
     message = _refused(tmp_path, "ros1", _replace(ros1, compressed, 2, header=later), compressed)
     assert "message 2's stamp" in message and "is not after message 1's" in message

@@ -120,16 +120,53 @@ def color_image(message, msgtype: str, where: str) -> Image.Image:
 
 
 def depth_image(message, msgtype: str, where: str) -> np.ndarray:
-    """(H, W) float64 metres of a depth ``Image`` (0 = invalid)."""
+    """(H, W) float64 metres of a depth ``Image`` or ``compressedDepth`` image (0 = invalid)."""
     encoding = getattr(message, "encoding", getattr(message, "format", ""))
-    if msgtype != IMAGE or encoding not in DEPTH_ENCODINGS:
+    if msgtype == COMPRESSED and "compressedDepth" in encoding:
+        depth = _compressed_depth(message, where)
+    elif msgtype == IMAGE and encoding in DEPTH_ENCODINGS:
+        dtype, scale = DEPTH_ENCODINGS[encoding]
+        depth = _pixels(message, dtype, 1, where)[..., 0].astype(np.float64) * scale
+    else:
         raise ValueError(
             f"{where}: depth encoding {encoding!r} of a {msgtype.split('/')[-1]} is not read "
-            "(sensor_msgs/Image in 16UC1 millimetres or 32FC1 metres)"
+            "(sensor_msgs/Image in 16UC1 millimetres or 32FC1 metres, or their PNG "
+            "compressedDepth)"
         )
-    dtype, scale = DEPTH_ENCODINGS[encoding]
-    depth = _pixels(message, dtype, 1, where)[..., 0].astype(np.float64) * scale
     return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
+
+
+def _compressed_depth(message, where: str) -> np.ndarray:
+    """(H, W) metres of a ``compressedDepth`` ``CompressedImage`` (image_transport's
+    compressed_depth_image_transport; ``format`` "16UC1; compressedDepth png" or "32FC1; ..."):
+    a 12-byte header (an int32, then the float32 quantization ``a``, ``b``) before a 16-bit PNG of
+    millimetres (16UC1) or of the quantized inverse depth ``q`` (32FC1: ``a / (q - b)`` metres,
+    ``q = 0`` invalid). RVL-coded images are refused."""
+    encoding, _, codec = (part.strip() for part in message.format.partition(";"))
+    data = np.asarray(message.data, np.uint8).tobytes()
+    if encoding not in DEPTH_ENCODINGS or codec not in ("compressedDepth", "compressedDepth png"):
+        raise ValueError(
+            f"{where}: compressed depth {message.format!r} is not read (16UC1 or 32FC1, "
+            "PNG-coded compressedDepth)"
+        )
+    if len(data) <= 12:
+        raise ValueError(f"{where}: {len(data)} bytes, no compressedDepth image after its header")
+    try:
+        image = Image.open(io.BytesIO(data[12:]))
+        image.load()
+    except IMAGE_ERRORS as err:
+        raise ValueError(
+            f"{where}: not a readable compressedDepth PNG ({type(err).__name__})"
+        ) from None
+    pixels = np.asarray(image)
+    if image.format != "PNG" or pixels.ndim != 2:
+        raise ValueError(f"{where}: a compressedDepth image is one 16-bit grey PNG after 12 bytes")
+    pixels = pixels.astype(np.float64)
+    if encoding == "16UC1":
+        return pixels * DEPTH_ENCODINGS["16UC1"][1]
+    a, b = np.frombuffer(data[4:12], "<f4").astype(np.float64)
+    inverse = pixels - b
+    return np.divide(a, inverse, out=np.zeros_like(pixels), where=(pixels > 0) & (inverse > 0))
 
 
 def label_image(message, msgtype: str, where: str) -> np.ndarray:
@@ -156,5 +193,5 @@ def image_encoding(reader, path: Path, topic: str) -> str:
     """The encoding of a topic's first image (``compressedDepth`` for compressed depth)."""
     first = first_message(reader, path, topic)
     if reader.topics[topic].msgtype == COMPRESSED:
-        return "compressedDepth" if "depth" in first.format else ""
+        return "compressedDepth" if "compressedDepth" in first.format else ""
     return first.encoding
