@@ -122,7 +122,7 @@ def _bad_sequences(sequence_dir: Path, root: Path) -> dict[str, tuple[Path, str]
     cases = {"missing folder": (root / "absent", "no such sequence folder")}
     no_poses = copy("no_poses")
     (no_poses / "poses.txt").unlink()
-    cases["no poses"] = (no_poses, "poses.txt: missing poses")
+    cases["no poses"] = (no_poses, "no poses to place the scans by (its pose file")
     few = copy("few_poses")
     lines = (few / "poses.txt").read_text().splitlines()
     (few / "poses.txt").write_text("\n".join(lines[:-1]) + "\n")

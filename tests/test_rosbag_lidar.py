@@ -147,27 +147,34 @@ def test_localize_drive_on_a_bag_gives_the_folder_s_flags_and_poses(
 
 def test_build_lidar_map_on_a_bag_is_the_folder_s_map(scans, written, tmp_path, capsys):
     """``jaxloc build-lidar-map BAG``: the folder's instance and road-normal files, the scans
-    placed by the bag's odometry or by ``--gt``; a bag option on a folder and a folder option on a
-    bag are one line each."""
+    placed by the bag's odometry or by ``--gt`` (which also replaces a folder's poses); a bag
+    option on a folder and a folder option on a bag are one line each."""
     gt = tmp_path / "gt.tum"
     poses = zip(STAMPS, scans.T_map_scan, strict=True)
     gt.write_text("".join(tum_line(format_ns_as_seconds(t), p) + "\n" for t, p in poses))
     common = ["--every", "2", "--no-progress"]
     runs = {"folder": [written["folder"]], "odometry": [written["mcap"]],
-            "gt": [written["mcap"], "--gt", gt]}  # fmt: skip
+            "gt": [written["mcap"], "--gt", gt],
+            "folder_gt": [written["folder"], "--gt", gt]}  # fmt: skip
     for name, source in runs.items():
         assert main([str(a) for a in ["build-lidar-map", *source, tmp_path / name, *common]]) == 0
     assert "placed by its odometry" in capsys.readouterr().out
     files = ["instances/15.txt", "instances/17.txt", "instances/18.txt", "RSN/road_normal.txt"]
-    for name in ("odometry", "gt"):
+    for name in ("odometry", "gt", "folder_gt"):
         for file in files:
             expected = np.loadtxt(tmp_path / "folder" / file, ndmin=2)
             np.testing.assert_allclose(np.loadtxt(tmp_path / name / file, ndmin=2), expected,
                                        atol=1e-6, err_msg=f"{name}: {file}")  # fmt: skip
     assert sum(len(np.loadtxt(tmp_path / "gt" / f, ndmin=2)) for f in files[:3]) >= 5
     for argv, expected in (
-        ([written["folder"], tmp_path / "x", "--topic", "/points"], "--topic: only for a bag"),
-        ([written["mcap"], tmp_path / "y", "--sensor", "Ouster"], "--sensor: only for a sequence"),
+        (
+            [written["folder"], tmp_path / "x", "--topic", "/points"],
+            "topic='/points' applies to bags",
+        ),
+        (
+            [written["mcap"], tmp_path / "y", "--sensor", "Ouster"],
+            "applies to sequence folders, not",
+        ),
     ):
         assert main([str(a) for a in ["build-lidar-map", *argv]]) == 2
         error = capsys.readouterr().err.strip()

@@ -1,5 +1,4 @@
-"""``jaxloc build-lidar-map``: instance and road-normal maps from labelled LiDAR scans (a sequence
-folder or a bag)."""
+"""``jaxloc build-lidar-map``: instance and road-normal maps from a labelled sequence or bag."""
 
 from __future__ import annotations
 
@@ -11,7 +10,7 @@ import numpy as np
 
 from jaxloc.cli._errors import InputError, reading
 from jaxloc.cli._lidar import add_triplet_options, check_save_path, describe_map, triplet_config
-from jaxloc.cli._lidar_scans import BAG_OPTIONS, add_sequence_options, open_sequence
+from jaxloc.cli._lidar_scans import BAG_OPTIONS, add_sequence_options, note_sequences
 from jaxloc.cli._options import command, positive_int
 
 DESCRIPTION = """\
@@ -65,14 +64,17 @@ def add_parser(commands) -> None:
     build.add_argument("--save-map", type=Path, metavar="FILE", help="also save it described")
     build.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_sequence_options(build)
-    build.add_argument("--gt", type=Path, metavar="FILE", help="a bag's poses: a pose file")
+    build.add_argument("--gt", type=Path, metavar="FILE", help="poses: a pose file (as for localize-lidar)")
     BAG_OPTIONS.add(build, "a bag SEQ_DIR (defaults: the bag's)")
     add_triplet_options(build)
 
 
 def check_build_lidar_map(args: argparse.Namespace) -> None:
-    """Before any work: ``--save-map`` names an ``.npz``, ``OUT_DIR`` is not a file."""
+    """Before any work: ``SEQ_DIR`` exists, ``--save-map`` names an ``.npz``, ``OUT_DIR`` is not a
+    file."""
     check_save_path(args.save_map)
+    if not args.seq_dir.exists():
+        raise InputError(f"{args.seq_dir}: no such sequence folder or bag")
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise InputError(f"{args.out_dir}: exists and is not a folder")
 
@@ -80,18 +82,18 @@ def check_build_lidar_map(args: argparse.Namespace) -> None:
 def run_build_lidar_map(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
+    from jaxloc import io
     from jaxloc.io import save_triplet_map, write_instance_maps
     from jaxloc.mapping import MapBuildConfig, build_lidar_maps
 
     start = time.perf_counter()
-    sequence, layout = open_scans(args)
+    with reading():
+        scans = io.open_lidar_recording(args.seq_dir, layout=args.format, sensor=args.sensor,
+                                        gt=args.gt, **BAG_OPTIONS.values(args))  # fmt: skip
+    note_sequences(args, scans.sequences)
     config = MapBuildConfig() if args.every is None else MapBuildConfig(every=args.every)
-    total = len(sequence) if hasattr(sequence, "bag") else len(sequence.bins)
-    with (
-        reading(),
-        tqdm(total=-(-total // config.every), unit="scan", disable=args.no_progress) as bar,
-    ):
-        maps = build_lidar_maps(sequence, config, bar.update)
+    with reading(), tqdm(total=len(scans), unit="scan", disable=args.no_progress) as bar:
+        maps = build_lidar_maps(scans, config, lambda n: bar.update(n * config.every))
     used = len(maps.scans_used)
     instances, normals = maps.instances, maps.road_normals
     triplet_map = None
@@ -106,32 +108,14 @@ def run_build_lidar_map(args: argparse.Namespace) -> int:
     counts = ", ".join(
         f"{int(np.sum(instances.labels == c))} x {c}" for c in sorted(set(instances.labels))
     )
+    placed = "ground truth" if scans.poses is not None else "odometry"
+    seq = scans.sequences[0] if scans.sequences else None
+    layout = f"{scans.bag.topic}, placed by its {placed}" if scans.bag else seq.layout
     print(
-        f"{args.seq_dir} ({layout}): {used} of {total} scans used -> "
+        f"{args.seq_dir} ({layout}{f', {seq.sensor}' if seq and seq.sensor else ''}): {used} of "
+        f"{len(scans)} scans used -> "
         f"{len(instances.points)} instances ({counts}), {len(normals.xy)} road-normal cells, "
         f"in {time.perf_counter() - start:.1f} s; wrote {args.out_dir}/instances/*.txt and "
         f"{args.out_dir}/RSN/road_normal.txt" + (f" and {args.save_map}" if args.save_map else "")
     )
     return 0
-
-
-def open_scans(args: argparse.Namespace):
-    """``(scans, description)``: a bag SEQ_DIR as a :class:`jaxloc.io.LidarRecording` placed by
-    ``--gt``/``--gt-topic`` or its odometry, else the sequence folder; the bag options on a folder
-    (and the folder options on a bag) are one-line errors."""
-    from jaxloc import io
-    from jaxloc.io._rosbag import is_bag
-
-    bag_options = {**BAG_OPTIONS.values(args), **({"gt": args.gt} if args.gt else {})}
-    if not is_bag(args.seq_dir):
-        if bag_options:
-            flags = ", ".join("--" + k.replace("_", "-") for k in bag_options)
-            raise InputError(f"{flags}: only for a bag SEQ_DIR; {args.seq_dir} is a folder")
-        sequence = open_sequence(args.seq_dir, args)
-        return sequence, sequence.layout + (f", {sequence.sensor}" if sequence.sensor else "")
-    if args.format is not None or args.sensor is not None:
-        raise InputError(f"--format, --sensor: only for a sequence folder; {args.seq_dir} is a bag")
-    with reading():
-        recording = io.open_lidar_recording(args.seq_dir, **bag_options)
-    placed = "ground truth" if recording.poses is not None else "odometry"
-    return recording, f"{recording.bag.topic}, placed by its {placed}"

@@ -1,7 +1,6 @@
 """The recording options of the LiDAR commands (``--format``, ``--sensor``, a bag's topics,
 ``--poses-out``, the drive's ``--accumulate`` family), their checks, and the notes of reading:
-the reading itself is :func:`jaxloc.io.open_lidar_recording` and
-:func:`jaxloc.io.lidar_sequence.open_lidar_sequence`."""
+the reading itself is :func:`jaxloc.io.open_lidar_recording`."""
 
 from __future__ import annotations
 
@@ -74,17 +73,6 @@ def note_sequences(args: argparse.Namespace, sequences: Sequence) -> None:
                 f"{seq.root}: {len(seq.skipped)} scan(s) without a pose at their "
                 f"time left out (first: {seq.skipped[0].name})",
             )
-
-
-def open_sequence(path: Path, args: argparse.Namespace):
-    """:func:`jaxloc.io.lidar_sequence.open_lidar_sequence` with its poses, ``--format`` and
-    ``--sensor``."""
-    from jaxloc.io.lidar_sequence import open_lidar_sequence
-
-    with reading():
-        sequence = open_lidar_sequence(path, True, args.format, args.sensor)
-    note_sequences(args, [sequence])
-    return sequence
 
 
 def check_poses_out(args: argparse.Namespace) -> None:

@@ -210,9 +210,12 @@ def _posed_scans(source: LidarSequence | LidarRecording):
             raise ValueError(f"{source.root}: the sequence has no poses")
         poses = source.T_map_scan
         return partial(read_sequence_scan, source), poses, np.ones(len(poses), bool), source.root
-    name = source.bag.path if source.bag is not None else source.paths[0]
+    name = source.sequences[0].root if source.sequences else source.paths[0]
+    name = source.bag.path if source.bag is not None else name
     if source.poses is not None:
         return source.scan, source.poses, np.asarray(source.has_pose, bool), name
     if source.odometry is None:
-        raise ValueError(f"{name}: no poses to place the scans by (gt=, gt_topic=, odometry)")
+        raise ValueError(
+            f"{name}: no poses to place the scans by (its pose file, gt=, gt_topic=, odometry)"
+        )
     return source.scan, source.odometry, np.ones(len(source), bool), name
