@@ -64,7 +64,7 @@ def add_parser(commands) -> None:
     build.add_argument("--save-map", type=Path, metavar="FILE", help="also save it described")
     build.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_sequence_options(build)
-    build.add_argument("--gt", type=Path, metavar="FILE", help="poses: a pose file (as for localize-lidar)")
+    build.add_argument("--gt", type=Path, metavar="FILE", help="a pose file of poses")
     BAG_OPTIONS.add(build, "a bag SEQ_DIR (defaults: the bag's)")
     add_triplet_options(build)
 
