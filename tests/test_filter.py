@@ -340,7 +340,8 @@ def test_chunked_step_and_every_engine_equal_the_one_call_step(
     """Rendering the active particles 24 at a time (a loop over the chunks that hold them: 11 for
     the 256 initial particles, the last one partly empty; 2 for the 32 left after the first
     step), or with the pure-JAX engine instead of the default one, gives the step of one render
-    call over every slot: same counts, same MLE, same weights."""
+    call over every slot: same counts, same MLE, same weights (within float rounding; with the
+    other engine within 1e-4, as a ray grazing an edge may hit the other triangle)."""
     assert step_config.chunk_size(STEP_CAPACITY) == STEP_CAPACITY  # the default: one call
     chunked = jax.jit(step)
     variants = [
@@ -357,7 +358,10 @@ def test_chunked_step_and_every_engine_equal_the_one_call_step(
             new, info = chunked(key, state, frame, scene, variant)
             np.testing.assert_array_equal(info.num_particles, one_call[1].num_particles)
             np.testing.assert_array_equal(info.mle, one_call[1].mle)
-            assert_trees_close((new, info), one_call, rtol=1e-5, atol=1e-6)
+            if variant.engine == step_config.engine:  # chunking alone changes nothing
+                assert_trees_close((new, info), one_call, rtol=1e-5, atol=1e-6)
+            else:  # engines may part on a ray along an edge: a weight moves by up to ~5e-5
+                assert_trees_close((new, info), one_call, rtol=1e-3, atol=1e-4)
 
 
 def test_run_pass_equals_stepping_frame_by_frame(initial, frames, scene, step_config):
@@ -499,20 +503,31 @@ def test_localize_with_and_without_a_progress_bar_agree_bit_for_bit(located, epi
 
 
 @pytest.mark.slow
-def test_localize_converges(located, episode):
-    """Two rounds, 400 particles, 5 frames. Measured (EPISODE_SEED 0, key 0, jax 0.10.1 CPU):
-    round 0 position error 0.99 / 0.93 / 0.90 / 0.71 / 0.62 m per frame; after round 1
-    0.162 / 0.098 / 0.045 / 0.047 / 0.030 m and 3.5 / 2.3 / 1.2 / 1.4 / 1.0 deg. Bounds: the last
-    frame within 0.3 m and 10 deg, every frame within 0.5 m, and round 1 no worse than round 0."""
-    position, yaw = pose_errors(located.poses, episode.poses_gt)
-    coarse_position, _ = pose_errors(located.round_mle[0], episode.poses_gt)
-    print(f"\nround 0 position error per frame (m): {np.round(coarse_position, 3)}")
-    print(f"final position error per frame (m): {np.round(position, 3)}")
-    print(f"final yaw error per frame (deg): {np.round(yaw, 2)}")
-    assert position[-1] < MAX_POSITION_ERROR and yaw[-1] < MAX_YAW_ERROR_DEG
-    assert np.all(position < 0.5)
-    # the refined round is no worse than the coarse one at the last frame
-    assert position[-1] <= coarse_position[-1] + 0.05
+def test_localize_converges(located, episode, scene):
+    """Two rounds, 400 particles, 5 frames, keys 0-7 (the first is ``located``'s; the others run
+    the same compiled programs). Measured over keys 0-47 (EPISODE_SEED 0, jax 0.10.1 CPU): the
+    last frame's error has median 0.076 m and is within 0.3 m for 94 % of the keys, but a single
+    key's first frames are often 0.5-0.8 m off (every frame within 0.5 m for 56 % of the keys),
+    so the bounds are on the keys' distribution: >= 6 of 8 last frames within 0.3 m and 10 deg,
+    their median within 0.2 m, and round 1 no worse than round 0 (medians)."""
+    results = [located] + [
+        localize(jax.random.key(k), scene, episode.sequence, LOCALIZE_CONFIG, progress=True)
+        for k in range(LOCALIZE_KEY + 1, LOCALIZE_KEY + 8)
+    ]
+    last, last_yaw, coarse_last = [], [], []
+    for result in results:
+        position, yaw = pose_errors(result.poses, episode.poses_gt)
+        coarse_position, _ = pose_errors(result.round_mle[0], episode.poses_gt)
+        last.append(position[-1])
+        last_yaw.append(yaw[-1])
+        coarse_last.append(coarse_position[-1])
+    last, last_yaw = np.array(last), np.array(last_yaw)
+    print(f"\nlast frame's position error per key (m): {np.round(last, 3)}")
+    print(f"last frame's yaw error per key (deg): {np.round(last_yaw, 2)}")
+    print(f"round 0's last frame per key (m): {np.round(coarse_last, 3)}")
+    assert np.sum((last < MAX_POSITION_ERROR) & (last_yaw < MAX_YAW_ERROR_DEG)) >= 6
+    assert np.median(last) < 0.2
+    assert np.median(last) <= np.median(coarse_last)
 
 
 def test_localize_result_shapes(located, episode):

@@ -143,6 +143,12 @@ def test_raycast_matches_brute_force_on_random_small_scenes(seed):
     clear = np.abs(edge_margin(triangles, origins, directions, tri_ref)) > 1e-4
     clear &= np.abs(edge_margin(triangles, origins, directions, np.where(tri >= 0, tri, -1))) > 1e-4
     np.testing.assert_array_equal((tri >= 0)[clear], (tri_ref >= 0)[clear])
-    both = clear & (tri >= 0) & (tri_ref >= 0)
+    # a ray almost in its triangle's plane has an ill-conditioned t (float32's error grows as
+    # 1 / cos of the angle to the normal; seed 2182: cos 1e-4, t off by 7e-4 m): not compared
+    a, b, c = (triangles[np.maximum(tri_ref, 0), k].astype(np.float64) for k in range(3))
+    normal = np.cross(b - a, c - a)
+    unit_ray = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    cosine = np.abs(np.sum(normal * unit_ray, axis=1)) / np.linalg.norm(normal, axis=1)
+    both = clear & (tri >= 0) & (tri_ref >= 0) & (cosine > 1e-2)
     np.testing.assert_allclose(t[both], t_ref[both], rtol=1e-4, atol=1e-4)
     assert np.all(np.isfinite(t[tri >= 0]))

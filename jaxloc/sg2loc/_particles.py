@@ -149,7 +149,9 @@ def _lattice_slots(
         yaw: (capacity,) float32 uniform yaw in [-pi, pi).
         active: (capacity,) bool.
     """
-    key_stratum, key_jitter, key_yaw = jax.random.split(key, 3)
+    # one uniform draw for every slot's stratum, jitter and yaw: each call site of the random
+    # number generator is compiled on its own
+    u = jax.random.uniform(key, (capacity, 5))
     counts = counts.astype(jnp.int32)
     per_cell = jnp.asarray(poses_per_cell, jnp.int32)
     total = counts[0] * counts[1] * counts[2] * per_cell
@@ -157,8 +159,7 @@ def _lattice_slots(
     stride = total.astype(jnp.float32) / capacity
     start = jnp.floor(slot * stride).astype(jnp.int32)
     end = jnp.maximum(jnp.floor((slot + 1) * stride).astype(jnp.int32), start + 1)
-    u = jax.random.uniform(key_stratum, (capacity,))
-    stratified = jnp.minimum(start + jnp.floor(u * (end - start)).astype(jnp.int32), end - 1)
+    stratified = jnp.minimum(start + jnp.floor(u[:, 0] * (end - start)).astype(jnp.int32), end - 1)
     index = jnp.where(total <= capacity, slot, jnp.minimum(stratified, total - 1))
     active = index < total
     cell = index // per_cell
@@ -166,8 +167,8 @@ def _lattice_slots(
     iy = (cell // counts[2]) % counts[1]
     ix = cell // (counts[2] * counts[1])
     cells = jnp.stack([ix, iy, iz], axis=-1)
-    jitter = jax.random.uniform(key_jitter, (capacity, 3))
-    yaw = jax.random.uniform(key_yaw, (capacity,), minval=-jnp.pi, maxval=jnp.pi)
+    jitter = u[:, 1:4]
+    yaw = u[:, 4] * (2.0 * jnp.pi) - jnp.pi
     return cells, jitter, wrap_angle(yaw), active
 
 
@@ -456,15 +457,25 @@ def inject_uniform(
     _check_state(state)
     lo, hi, heights = _check_region(lo, hi, heights, floor_z)
     n = state.capacity
-    key_xy, key_height, key_yaw = jax.random.split(key, 3)
-    xy = jax.random.uniform(key_xy, (n, 2), minval=lo, maxval=jnp.maximum(hi, lo))
-    z = jnp.asarray(floor_z, jnp.float32) + jax.random.choice(key_height, heights, (n,))
-    yaw = wrap_angle(jax.random.uniform(key_yaw, (n,), minval=-jnp.pi, maxval=jnp.pi))
+    # one uniform draw for all the new particles' coordinates: each call site of the random
+    # number generator is compiled on its own
+    u = jax.random.uniform(key, (n, 4))
+    xy = lo + u[:, :2] * (jnp.maximum(hi, lo) - lo)
+    choice = jnp.minimum(
+        jnp.floor(u[:, 2] * heights.shape[0]).astype(jnp.int32), heights.shape[0] - 1
+    )
+    z = jnp.asarray(floor_z, jnp.float32) + heights[choice]
+    yaw = wrap_angle(u[:, 3] * (2.0 * jnp.pi) - jnp.pi)
     fresh = jnp.concatenate([xy, z[:, None], yaw[:, None]], axis=-1)
 
     usable = state.active & jnp.isfinite(state.log_weights)
     log_weights = jnp.where(usable, state.log_weights, -jnp.inf)
-    order = jnp.lexsort((log_weights, state.active))
+    # inactive slots first, then the active ones by log-weight (unusable ones lowest), ties in
+    # slot order: one sort key
+    lowest = jnp.finfo(jnp.float32).min
+    order = jnp.argsort(
+        jnp.where(state.active, jnp.maximum(log_weights, lowest), -jnp.inf), stable=True
+    )
     rank = jnp.zeros(n, jnp.int32).at[order].set(jnp.arange(n, dtype=jnp.int32))
     replace = rank < jnp.clip(jnp.asarray(count, jnp.int32), 0, n)
 

@@ -8,7 +8,8 @@ over the active particles, and a ``degenerate`` flag reports it.
 KLD-sampling, exactly as implemented here (:func:`kld_resample`):
 
 1. draw ``N`` (the capacity) indices from the weights with the configured resampler;
-2. put them in a random order (a random permutation), so each prefix is a random sub-sample;
+2. put them in a random order (sorted by random 32-bit keys), so each prefix is a random
+   sub-sample;
 3. bin every drawn pose on the grid ``floor((x, y, z, yaw) / bin_sizes)`` (yaw wrapped to
    [-pi, pi) first) and count ``k_n``, the distinct bins among the first ``n`` draws (lexsort of
    the bins with the draw order as the last key, first-occurrence flags, cumulative sum);
@@ -45,13 +46,17 @@ def _check_method(method: str) -> None:
         raise ValueError(f"method must be one of {RESAMPLING_METHODS}, got {method!r}")
 
 
-def _uniforms(key: Array, size: int, n: Array, method: str) -> Array:
-    """(size,) sorted points in [0, 1): one per stratum ``[i/n, (i+1)/n)`` for i < n."""
-    slot = jnp.arange(size, dtype=jnp.float32)
-    if method == "stratified":
-        offsets = jax.random.uniform(key, (size,))
-    else:
-        offsets = jnp.full((size,), jax.random.uniform(key, ()))
+def _unit(bits: Array) -> Array:
+    """Uniforms in [0, 1) (float32, exact multiples of 2**-24) from uint32 random bits."""
+    return (bits >> 8).astype(jnp.float32) * jnp.float32(2.0**-24)
+
+
+def _uniforms(offsets: Array, n: Array, method: str) -> Array:
+    """(size,) sorted points in [0, 1): one per stratum ``[i/n, (i+1)/n)`` for i < n, from
+    ``offsets`` (size,) uniforms in [0, 1) (stratified: each its own; systematic: the first)."""
+    slot = jnp.arange(offsets.shape[0], dtype=jnp.float32)
+    if method == "systematic":
+        offsets = jnp.full_like(offsets, offsets[0])
     return jnp.minimum((slot + offsets) / n.astype(jnp.float32), _BELOW_ONE)
 
 
@@ -72,12 +77,17 @@ def draw_indices(key: Array, weights: Array, n: Array | int, method: str = "stra
         (N,) int32 indices.
     """
     _check_method(method)
+    return _draw(weights, n, _unit(jax.random.bits(key, weights.shape, jnp.uint32)), method)
+
+
+def _draw(weights: Array, n: Array | int, offsets: Array, method: str) -> Array:
+    """:func:`draw_indices` with its uniforms ``offsets`` (N,) given."""
     size = weights.shape[0]
     n = jnp.clip(jnp.asarray(n, jnp.int32), 1, size)
     cumulative = jnp.cumsum(weights)
     total = cumulative[-1]
     cumulative = cumulative / jnp.where(total > 0.0, total, 1.0)
-    u = _uniforms(key, size, n, method)
+    u = _uniforms(offsets, n, method)
     indices = jnp.searchsorted(cumulative, u, side="right").astype(jnp.int32)
     indices = jnp.minimum(indices, size - 1)
     return jnp.where(jnp.arange(size) < n, indices, 0)
@@ -96,10 +106,18 @@ def resample(
         is True).
     """
     _check_method(method)
+    offsets = _unit(jax.random.bits(key, (state.capacity,), jnp.uint32))
+    return _resample(state, n, offsets, method)
+
+
+def _resample(
+    state: ParticleState, n: Array | int, offsets: Array, method: str
+) -> tuple[ParticleState, Array]:
+    """:func:`resample` with its uniforms ``offsets`` (N,) given."""
     weights, degenerate = normalized_weights(state.log_weights, state.active)
     size = state.capacity
     n = jnp.clip(jnp.asarray(n, jnp.int32), 1, size)
-    indices = draw_indices(key, weights, n, method)
+    indices = _draw(weights, n, offsets, method)
     active = jnp.arange(size) < n
     poses = jnp.where(active[:, None], state.poses[indices], 0.0)
     resampled = ParticleState(poses, uniform_log_weights(active), active)
@@ -258,12 +276,15 @@ def kld_resample(
     """
     config = KLDConfig() if config is None else config
     size = state.capacity
-    key_count, key_order, key_draw = jax.random.split(key, 3)
+    # One draw of random bits for all three random steps (each call site of the random number
+    # generator is compiled on its own): the counting draw's uniforms, the order's sort keys
+    # (ties, rare among 32-bit keys, keep the draw order) and the final draw's uniforms.
+    bits = jax.random.bits(key, (3, size), jnp.uint32)
     weights, degenerate = normalized_weights(state.log_weights, state.active)
-    draws = draw_indices(key_count, weights, size, config.method)
-    draws = draws[jax.random.permutation(key_order, size)]
+    draws = _draw(weights, size, _unit(bits[0]), config.method)
+    draws = draws[jnp.argsort(bits[1], stable=True)]
     n, bins = kld_sample_count(state.poses[draws], config)
-    new_state, _ = resample(key_draw, state, n, config.method)
+    new_state, _ = _resample(state, n, _unit(bits[2]), config.method)
     any_active = jnp.any(state.active)
     info = KLDInfo(
         num_particles=jnp.where(any_active, n, 0),
