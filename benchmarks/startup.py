@@ -24,6 +24,12 @@ after).
 
     python benchmarks/startup.py                     # everything (a few minutes; the demo ~2 min)
     python benchmarks/startup.py --skip-demo --repeats 5
+    python benchmarks/startup.py --baseline /tmp/jaxloc-base --repeats 5
+
+``--baseline DIR`` (repeatable) times only the SG2Loc commands' first runs (``localize-camera``,
+and the demo unless ``--skip-demo``), each against an empty cache, for this checkout and every
+older checkout DIR in turn, ``--repeats`` rounds, so that a slow spell of the machine hits them
+alike: the median and every run per checkout.
 """
 
 from __future__ import annotations
@@ -125,6 +131,42 @@ def pair(name: str, command: list[str], work: Path, cache: bool) -> tuple[float,
     return walls[0], walls[1], reports
 
 
+def first_runs_beside(baselines: list[Path], repeats: int, skip_demo: bool) -> str:
+    """The table of ``--baseline``: first runs (empty cache) per command and checkout."""
+    trees = [ROOT, *(b.resolve() for b in baselines)]
+    before = loadavg()
+    with tempfile.TemporaryDirectory() as scratch:
+        work = Path(scratch)
+        commands = {"localize-camera MAP.npz SEQ": ["localize-camera", *camera_inputs(work)]}
+        if not skip_demo:
+            commands["demo"] = ["demo", "--out", str(work / "demo.png")]
+        runs = {(name, tree): [] for name in commands for tree in trees}
+        for _ in range(repeats):
+            for name, command in commands.items():
+                for tree in trees:
+                    env = dict(os.environ, JAXLOC_CACHE_DIR=str(work / "cache"))
+                    shutil.rmtree(work / "cache", ignore_errors=True)
+                    start = time.perf_counter()
+                    done = subprocess.run(
+                        [*JAXLOC, *command], env=env, capture_output=True, text=True, cwd=tree
+                    )
+                    if done.returncode != 0:
+                        raise SystemExit(f"{tree}: {name} failed:\n{done.stderr[-2000:]}")
+                    runs[name, tree].append(time.perf_counter() - start)
+    lines = [
+        f"First runs (empty cache), wall seconds, {repeats} rounds. Load average before: "
+        f"{before}, after: {loadavg()}.",
+        "",
+        "| command | checkout | median (s) | runs (s) |",
+        "|---|---|---|---|",
+    ]
+    for (name, tree), seconds in runs.items():
+        label = "this one" if tree == ROOT else str(tree)
+        values = " ".join(f"{v:.2f}" for v in seconds)
+        lines.append(f"| `{name}` | {label} | {statistics.median(seconds):.2f} | {values} |")
+    return "\n".join(lines)
+
+
 def loadavg() -> str:
     return " ".join(f"{v:.2f}" for v in os.getloadavg())
 
@@ -136,7 +178,14 @@ def main() -> None:
     parser.add_argument("--demo-args", nargs="*", default=[])
     parser.add_argument("--no-cache", action="store_true", help="second runs without the cache")
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--baseline", type=Path, action="append", default=[])
     args = parser.parse_args()
+    if args.baseline:
+        text = first_runs_beside(args.baseline, args.repeats, args.skip_demo)
+        print(text)
+        if args.out is not None:
+            args.out.write_text(text + "\n")
+        return
     before = loadavg()
     rows = []
     with tempfile.TemporaryDirectory() as scratch:

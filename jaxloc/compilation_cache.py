@@ -69,9 +69,10 @@ def quiet_xla_log() -> bool:
     return True
 
 
-#: The XLA flag :func:`prefer_fast_compilation` sets: XLA:CPU's legacy fusion emitters.
-FAST_COMPILATION_FLAG = "--xla_cpu_use_fusion_emitters=false"
-#: The jaxlib versions (major, minor), inclusive, whose XLA has that flag; an unknown flag in
+#: The XLA flags :func:`prefer_fast_compilation` sets: XLA:CPU's legacy fusion emitters, and
+#: LLVM's optimization level 1 for the generated code.
+FAST_COMPILATION_FLAG = "--xla_cpu_use_fusion_emitters=false --xla_backend_optimization_level=1"
+#: The jaxlib versions (major, minor), inclusive, whose XLA has these flags; an unknown flag in
 #: ``XLA_FLAGS`` aborts the process, so it is not set for any other version.
 FAST_COMPILATION_JAXLIB = ((0, 7), (0, 10))
 #: The same choice as one program's compile option (:func:`legacy_emitter_options`).
@@ -79,14 +80,17 @@ LEGACY_EMITTER_OPTION = "xla_cpu_use_fusion_emitters"
 
 
 def prefer_fast_compilation() -> bool:
-    """Compile with XLA:CPU's legacy fusion emitters in this process (``XLA_FLAGS`` =
-    :data:`FAST_COMPILATION_FLAG`), where that can still take effect (jax not imported yet), the
-    user has not set ``XLA_FLAGS`` and the installed jaxlib is one of
+    """Compile with XLA:CPU's legacy fusion emitters and LLVM's optimization level 1 in this
+    process (``XLA_FLAGS`` = :data:`FAST_COMPILATION_FLAG`), where that can still take effect
+    (jax not imported yet), the user has not set ``XLA_FLAGS`` and the installed jaxlib is one of
     :data:`FAST_COMPILATION_JAXLIB`. The SG2Loc commands (``localize-camera``, ``demo``) call
     it first thing.
 
-    Why: XLA:CPU compiles jaxloc's programs 20-40 % faster with them (an SG2Loc filter round
-    3.2 -> 2.6 s, the single-scale M2Loc query 4.0 -> 2.4 s). The filter rounds run as fast;
+    Why: XLA:CPU compiles jaxloc's programs 20-40 % faster with the legacy emitters (an SG2Loc
+    filter round 3.2 -> 2.6 s, the single-scale M2Loc query 4.0 -> 2.4 s), and the SG2Loc
+    filter's three steps at the paper's scale another 16-22 % faster at optimization level 1
+    (8.8 -> 7.4 s, 12.0 -> 9.4 s), running as fast (1.35 s per frame both ways) with
+    bit-identical poses (benchmarks/results/startup_cpu.md). The filter rounds run as fast;
     the M2Loc query with three scales runs 20-30 % slower (paired reductions such as ``argmax``
     run ~2x slower with these emitters; the greedy clique loops avoid it), so the LiDAR commands
     do not use them, except for the query programs of one scale (:func:`legacy_emitter_options`;
