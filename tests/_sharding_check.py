@@ -208,20 +208,12 @@ def main() -> None:
     start = time.perf_counter()
     result.update(particle_checks(mesh))
     result["particle_seconds"] = time.perf_counter() - start
-    main_run = localize_checks(mesh, progress=True)
-    result.update(main_run)
+    result.update(localize_checks(mesh, progress=True))
     result["localize_seconds"] = time.perf_counter() - start - result["particle_seconds"]
-    # every installed engine, and the chunk loop (2 particles per chunk, 2 chunks per device);
-    # localize runs again only for an engine other than the one "auto" ran above
-    default = {k: v for k, v in main_run.items() if k.startswith("localize_")}
-
-    def localized(engine: str) -> dict:
-        same = engines.resolve_engine(engine) == engines.resolve_engine("auto")
-        return default if same else localize_checks(mesh, engine)
-
+    # every installed engine, and the chunk loop (2 particles per chunk, 2 chunks per device)
     variants = [(engine, None) for engine in ENGINES] + [("auto", 2)]
     result["engines"] = {
-        f"{engine}/{chunk}": particle_checks(mesh, engine, chunk) | localized(engine)
+        f"{engine}/{chunk}": particle_checks(mesh, engine, chunk) | localize_checks(mesh, engine)
         for engine, chunk in variants
     }
     if "embree" in ENGINES:
