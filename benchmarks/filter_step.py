@@ -28,6 +28,7 @@ size, labelled as an estimate.
     python benchmarks/filter_step.py --cases stride --strides 20       # the coarse pass only
     python benchmarks/filter_step.py --engine jax --chunk 0            # pure JAX, all slots at once
     python benchmarks/filter_step.py --baseline /tmp/jaxloc-base       # beside an older checkout
+    python benchmarks/filter_step.py --cases stride --depth-blind      # and without the depth score
 
 ``--baseline`` runs every case a second time with an older jaxloc checkout first on the child's
 ``PYTHONPATH`` (``git worktree add /tmp/jaxloc-base <commit>``), alternating the two, and labels
@@ -85,6 +86,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument(
         "--baseline", type=Path, default=None, help="an older jaxloc checkout to run beside"
     )
+    parser.add_argument(
+        "--depth-blind",
+        action="store_true",
+        help="also run every case without the depth score (the depth-blind check's filter)",
+    )
+    parser.add_argument("--without-depth", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--data", default=None, help=argparse.SUPPRESS)
     return parser.parse_args(argv)
@@ -198,7 +205,7 @@ def run_case(args: argparse.Namespace) -> dict:
     config = StepConfig(
         camera=seq.camera,
         grid=grid,
-        observation=ObservationConfig(),
+        observation=ObservationConfig(use_depth=not args.without_depth),
         kld=KLDConfig()
         if args.min_particles is None
         else KLDConfig(min_particles=args.min_particles),
@@ -378,9 +385,12 @@ def report(args, data_info: dict, results: list[dict]) -> str:
         if reduced:
             row.append(f"{estimate:.1f}")
         lines.append("| " + " | ".join(row) + " |")
-    for suffix in ("", " (baseline)"):
-        tree = [r for r in results if r["case"].endswith(" (baseline)") == bool(suffix)]
-        lines += total_row(args, tree, suffix, reduced)
+
+    def label(result: dict) -> str:  # " (baseline)", " (depth-blind)", both, or ""
+        return result["case"][len(result["case"].split(" ")[0]) :]
+
+    for suffix in dict.fromkeys(label(r) for r in results):
+        lines += total_row(args, [r for r in results if label(r) == suffix], suffix, reduced)
     load = os.getloadavg() if hasattr(os, "getloadavg") else None
     notes = [
         "",
@@ -433,7 +443,8 @@ def main(argv=None) -> None:
         print(f"episode built in {data_info['seconds']:.1f} s", flush=True)
         results = []
         trees = [None] if args.baseline is None else [None, args.baseline.resolve()]
-        for case, tree in ((c, t) for c in cases for t in trees):
+        blind = [False, True] if args.depth_blind else [False]
+        for case, tree, without in ((c, t, b) for c in cases for t in trees for b in blind):
             command = [sys.executable, __file__, "--child", case, "--data", folder]
             for name in ("particles", "frames", "width", "height", "strides", "seed", "engine"):
                 command += [f"--{name}", str(getattr(args, name))]
@@ -441,6 +452,8 @@ def main(argv=None) -> None:
                 command += ["--chunk", str(args.chunk)]
             if args.min_particles is not None:
                 command += ["--min-particles", str(args.min_particles)]
+            if without:
+                command.append("--without-depth")
             env = dict(os.environ)
             if tree is not None:
                 env["PYTHONPATH"] = os.pathsep.join(
@@ -454,6 +467,8 @@ def main(argv=None) -> None:
             result = json.loads(lines[-1][len("RESULT ") :])
             if tree is not None:
                 result["case"] += " (baseline)"
+            if without:
+                result["case"] += " (depth-blind)"
             results.append(result)
             print(
                 f"{result['case']}: compile {result['compile_wall']:.1f} s, frames "

@@ -21,9 +21,25 @@ the frames within 0.25 m and 5 degrees in the right room (good) from the wrong p
 (1: every good frame scores higher; a term where lower is better is negated first), and the
 10/50/90 % quantiles of both.
 
-    JAX_PLATFORMS=cpu python experiments/sg2loc_verdict_evidence.py --run --seeds 5100-5119
+``--shadow`` localizes the sequences of the conditions whose filter scores depth again, without
+depth (a depth-blind *shadow* filter: ``--shadow-rounds all``, the condition's rounds; ``first``,
+only its first round's stride; ``quarter``, every round with a quarter of the particles), and
+logs the depth agreement of the shadow's estimates. ``--shadow-report`` judges the check "the
+shadow's estimate agrees with the recording's depth on >= tau of its rays" on the estimates of
+the filter that scores depth: flagged frames, precision (within 0.5 m and 10 degrees), recall of
+the good frames and wrong-place frames flagged, per tau.
+
+``--split kinect`` runs the held-out generator variant of ``sg2loc_verdict_conditions.py`` (the
+``"kinect"`` depth model, sizes 320x180 to 960x540) instead of the development conditions.
+
+    JAX_PLATFORMS=cpu python experiments/sg2loc_verdict_evidence.py --run --seeds 5100-5123
     python experiments/sg2loc_verdict_evidence.py --report > \
         experiments/results/sg2loc_verdict_evidence/report_dev.txt
+    JAX_PLATFORMS=cpu python experiments/sg2loc_verdict_evidence.py --shadow --seeds 5100-5123
+    python experiments/sg2loc_verdict_evidence.py --shadow-report
+    JAX_PLATFORMS=cpu python experiments/sg2loc_verdict_evidence.py --split kinect --run \
+        --shadow --seeds 7100-7111
+    python experiments/sg2loc_verdict_evidence.py --split kinect --report --shadow-report
 """
 
 from __future__ import annotations
@@ -62,6 +78,18 @@ TERMS = [
 ]
 FIELDS = ["seed", "kind", "frame", "pos", "rot", "use_depth", "width", "sigma", "seconds"]
 FIELDS += [name for name, _ in TERMS]
+#: Each split's generator variant and image sizes (None: drawn as the development conditions are);
+#: ``kinect`` is the verdict experiment's held-out variant.
+SPLITS = {
+    "dev": ("relative", None),
+    "kinect": ("kinect", [(320, 180), (480, 270), (640, 360), (960, 540)]),
+}
+#: The shadow check's threshold: the lowest of the report's grid, every tau from it to 0.7 keeping
+#: >= 99 % of the flagged frames right on the development split.
+CHOSEN_TAU = 0.5
+#: The depth terms, logged for the depth-blind shadow filter's estimates too.
+DEPTH_TERMS = ["inlier_10", "inlier_20", "inlier_rel", "median_error", "see_through", "occluded"]
+SHADOW_FIELDS = ["seed", "kind", "frame", "pos", "rot", "seconds", *DEPTH_TERMS]
 
 
 def depth_agreement(rendered: np.ndarray, sensor: np.ndarray) -> dict[str, float]:
@@ -70,8 +98,7 @@ def depth_agreement(rendered: np.ndarray, sensor: np.ndarray) -> dict[str, float
     sensor depth."""
     valid = np.isfinite(sensor) & (sensor > 0.0)
     if not valid.any():
-        return {name: 0.0 for name in ("inlier_10", "inlier_20", "inlier_rel", "median_error",
-                                       "see_through", "occluded")}  # fmt: skip
+        return dict.fromkeys(DEPTH_TERMS, 0.0)
     s, r = sensor[valid], rendered[valid]
     hit = np.isfinite(r) & (r > 0.0)
     error = np.where(hit, np.abs(np.where(hit, r, 0.0) - s), np.inf)
@@ -85,87 +112,160 @@ def depth_agreement(rendered: np.ndarray, sensor: np.ndarray) -> dict[str, float
     }
 
 
-def run(seeds) -> None:
+def localize_and_check(seed: int, kind: str, condition: dict, shared) -> dict:
+    """Localize the ``kind`` sequence of ``condition`` offline and render each frame's estimate on
+    the final round's grid: ``{"pos", "rot"}`` (T,) errors (NaN in a wrong place), ``"verdict"``
+    (the final round's), ``"depth"``: each frame's :func:`depth_agreement`, ``"seconds"``."""
     import jax
     import jax.numpy as jnp
-    from sg2loc_tables import SharedCapacity
 
-    from jaxloc import enable_compilation_cache, stride_grid
+    from jaxloc import stride_grid
     from jaxloc.metrics import yaw_pose_errors
     from jaxloc.sg2loc import localize
     from jaxloc.sg2loc._filter import frames_on_grid
     from jaxloc.sg2loc._rendering import render
     from jaxloc.synthetic.indoor import make_episode, make_lookalike_episode
 
+    config, generator = sg2loc_config(condition), episode_config(condition)
+    if kind == "right":
+        episode = make_episode(seed, 10, generator)
+    else:
+        episode = make_lookalike_episode(seed, seed + PLACE_OFFSET, 10, generator)
+    scene, sequence = shared.scene(episode.room), episode.sequence
+    start = time.perf_counter()
+    result = localize(jax.random.key(seed), scene, sequence, config)
+    poses = np.asarray(result.poses)
+    seconds = time.perf_counter() - start
+    grid = stride_grid(sequence.camera, config.strides[-1], *sequence.patch_shape)
+    frames = frames_on_grid(sequence, grid)
+    draw = functools.partial(render, scene, camera=sequence.camera, grid=grid, differentiable=False)
+    views = jax.jit(jax.vmap(lambda p, t: draw(pose=p, tilt=t)))(jnp.asarray(poses), frames.tilt)
+    if episode.in_map:
+        pos, rot = yaw_pose_errors(poses, episode.poses_gt)
+    else:
+        pos = rot = np.full(len(poses), np.nan)
+    rendered, sensor = np.asarray(views.depth), np.asarray(frames.depth)
+    return {
+        "pos": pos,
+        "rot": rot,
+        "verdict": jax.tree.map(np.asarray, result.info.verdict),
+        "depth": [depth_agreement(rendered[t], sensor[t]) for t in range(len(poses))],
+        "seconds": seconds,
+    }
+
+
+def append_rows(path: Path, fields: list[str], rows: list[dict]) -> None:
+    new = not path.exists()
+    with path.open("a", newline="") as f:
+        writer = csv.DictWriter(f, fields)
+        if new:
+            writer.writeheader()
+        writer.writerows(rows)
+
+
+def done_runs(path: Path) -> set[tuple[int, str]]:
+    if not path.exists():
+        return set()
+    with path.open() as f:
+        return {(int(r["seed"]), r["kind"]) for r in csv.DictReader(f)}
+
+
+def run(seeds, split: str) -> None:
+    import jax
+    from sg2loc_tables import SharedCapacity
+
+    from jaxloc import enable_compilation_cache
+
     enable_compilation_cache()
     OUT.mkdir(parents=True, exist_ok=True)
-    path = OUT / "frames_dev.csv"
-    done = set()
-    if path.exists():
-        with path.open() as f:
-            done = {(int(r["seed"]), r["kind"]) for r in csv.DictReader(f)}
-    shared = SharedCapacity()
+    path = OUT / f"frames_{split}.csv"
+    done, shared = done_runs(path), SharedCapacity()
     for seed in seeds:
         jax.clear_caches()  # every condition compiles programs of its own shapes
-        condition = draw_condition(seed, "relative", None)
-        config = sg2loc_config(condition)
-        generator = episode_config(condition)
+        condition = draw_condition(seed, *SPLITS[split])
         for kind in ("right", "wrong"):
             if (seed, kind) in done:
                 continue
-            if kind == "right":
-                episode = make_episode(seed, 10, generator)
-            else:
-                episode = make_lookalike_episode(seed, seed + PLACE_OFFSET, 10, generator)
-            scene, sequence = shared.scene(episode.room), episode.sequence
-            start = time.perf_counter()
-            result = localize(jax.random.key(seed), scene, sequence, config)
-            poses = np.asarray(result.poses)
-            seconds = time.perf_counter() - start
-            grid = stride_grid(sequence.camera, config.strides[-1], *sequence.patch_shape)
-            frames = frames_on_grid(sequence, grid)
-            draw = functools.partial(
-                render, scene, camera=sequence.camera, grid=grid, differentiable=False
-            )
-            views = jax.jit(jax.vmap(lambda p, t, draw=draw: draw(pose=p, tilt=t)))(
-                jnp.asarray(poses), frames.tilt
-            )
-            if episode.in_map:
-                pos, rot = yaw_pose_errors(poses, episode.poses_gt)
-            else:
-                pos = rot = np.full(len(poses), np.nan)
-            verdict = jax.tree.map(np.asarray, result.info.verdict)
-            rows = []
-            for t in range(len(poses)):
+            out = localize_and_check(seed, kind, condition, shared)
+            verdict, rows = out["verdict"], []
+            for t, agreement in enumerate(out["depth"]):
                 terms = {
                     "semantic_fraction": verdict.semantic_fraction[t],
                     "mass": verdict.mass[t],
                     "depth_deficit": verdict.depth_deficit[t],
                     "ess": verdict.ess_fraction[t],
                     "spread_z": verdict.spread[t, 2],
-                    **depth_agreement(np.asarray(views.depth[t]), np.asarray(frames.depth[t])),
+                    **agreement,
                 }
                 rows.append(
                     {
                         "seed": seed,
                         "kind": kind,
                         "frame": t,
-                        "pos": round(float(pos[t]), 4),
-                        "rot": round(float(rot[t]), 3),
+                        "pos": round(float(out["pos"][t]), 4),
+                        "rot": round(float(out["rot"][t]), 3),
                         "use_depth": condition["use_depth"],
                         "width": condition["width"],
                         "sigma": condition["sigma"],
-                        "seconds": round(seconds, 2),
+                        "seconds": round(out["seconds"], 2),
                         **{k: round(float(v), 4) for k, v in terms.items()},
                     }
                 )
-            new = not path.exists()
-            with path.open("a", newline="") as f:
-                writer = csv.DictWriter(f, FIELDS)
-                if new:
-                    writer.writeheader()
-                writer.writerows(rows)
-            print(f"seed {seed} {kind} {condition['width']}px: {seconds:.0f} s", flush=True)
+            append_rows(path, FIELDS, rows)
+            print(f"seed {seed} {kind} {condition['width']}px: {out['seconds']:.0f} s", flush=True)
+
+
+#: The shadow filter's variants: the condition's every round, only its first round's stride, or
+#: every round with a quarter of the particles.
+SHADOWS = ("all", "first", "quarter")
+
+
+def shadow_file(rounds: str, split: str) -> Path:
+    return OUT / (f"shadow_{split}.csv" if rounds == "all" else f"shadow_{rounds}_{split}.csv")
+
+
+def run_shadow(seeds, rounds: str, split: str) -> None:
+    """For the conditions whose filter scores depth: the same sequences localized without depth
+    (a depth-blind shadow filter, one of :data:`SHADOWS`), its estimates' depth agreement on its
+    final grid in :func:`shadow_file`."""
+    import jax
+    from sg2loc_tables import SharedCapacity
+
+    from jaxloc import enable_compilation_cache
+
+    enable_compilation_cache()
+    path = shadow_file(rounds, split)
+    done, shared = done_runs(path), SharedCapacity()
+    for seed in seeds:
+        condition = draw_condition(seed, *SPLITS[split])
+        if not condition["use_depth"]:
+            continue
+        jax.clear_caches()
+        blind = dict(condition, use_depth=0)
+        if rounds == "first":
+            blind["strides"] = str(condition["strides"]).split("/")[0]
+        elif rounds == "quarter":
+            blind["capacity"] = condition["capacity"] // 4
+        for kind in ("right", "wrong"):
+            if (seed, kind) in done:
+                continue
+            out = localize_and_check(seed, kind, blind, shared)
+            rows = [
+                {
+                    "seed": seed,
+                    "kind": kind,
+                    "frame": t,
+                    "pos": round(float(out["pos"][t]), 4),
+                    "rot": round(float(out["rot"][t]), 3),
+                    "seconds": round(out["seconds"], 2),
+                    **{k: round(float(v), 4) for k, v in agreement.items()},
+                }
+                for t, agreement in enumerate(out["depth"])
+            ]
+            append_rows(path, SHADOW_FIELDS, rows)
+            print(
+                f"shadow {seed} {kind} {condition['width']}px: {out['seconds']:.0f} s", flush=True
+            )
 
 
 def auc(positive: np.ndarray, negative: np.ndarray) -> float:
@@ -175,8 +275,8 @@ def auc(positive: np.ndarray, negative: np.ndarray) -> float:
     return float(greater + 0.5 * equal)
 
 
-def report() -> str:
-    with (OUT / "frames_dev.csv").open() as f:
+def report(split: str) -> str:
+    with (OUT / f"frames_{split}.csv").open() as f:
         rows = list(csv.DictReader(f))
     data = {k: np.array([r[k] for r in rows], None if k == "kind" else float) for k in FIELDS}
     good = (data["kind"] == "right") & (data["pos"] < 0.25) & (data["rot"] < 5.0)
@@ -210,16 +310,94 @@ def report() -> str:
     return "\n".join(lines)
 
 
+def shadow_report(rounds: str, split: str) -> str:
+    """The depth-blind shadow filter's check: a frame is flagged when the shadow's estimate agrees
+    with the recording's depth on >= tau of its rays (``inlier_rel``); judged on the estimates of
+    the filter that scores depth (``frames_dev.csv``), per tau."""
+    tables = []
+    for path in (OUT / f"frames_{split}.csv", shadow_file(rounds, split)):
+        with path.open() as f:
+            tables.append({(r["seed"], r["kind"], r["frame"]): r for r in csv.DictReader(f)})
+    full, shadow = tables
+    keys = sorted(k for k in shadow if k in full)
+    value = lambda table, name: np.array([float(table[k][name]) for k in keys])  # noqa: E731
+    right = np.array([k[1] == "right" for k in keys])
+    pos, rot = value(full, "pos"), value(full, "rot")
+    good, near, wrong = (
+        right & (pos < 0.25) & (rot < 5.0),
+        right & (pos < 0.5) & (rot < 10.0),
+        ~right,
+    )
+    blind_good = right & (value(shadow, "pos") < 0.25) & (value(shadow, "rot") < 5.0)
+    seeds = sorted({int(k[0]) for k in keys})
+    lines = [
+        f"{len(seeds)} conditions whose filter scores depth ({', '.join(map(str, seeds))}), "
+        f"{len(keys)} frames: {good.sum()} good (the depth filter's estimate within 0.25 m and "
+        f"5 deg), {near.sum()} within 0.5 m and 10 deg, {wrong.sum()} wrong-place frames. The "
+        f"shadow filter (the same, without depth) puts {blind_good.sum()} right-room frames "
+        "within 0.25 m and 5 deg.",
+        "",
+        "| check | AUC good vs wrong |",
+        "|---|---|",
+    ]
+    for label, table in (("at the depth filter's estimate", full), ("at the shadow's", shadow)):
+        for term in ("inlier_rel", "inlier_20"):
+            score = auc(value(table, term)[good], value(table, term)[wrong])
+            lines.append(f"| {term} {label} | {score:.2f} |")
+    lines += [
+        "",
+        "| flag: shadow inlier_rel >= | flagged | precision (within 0.5 m / 10 deg) | recall of "
+        "good | wrong-place frames flagged |",
+        "|---|---|---|---|---|",
+    ]
+    agreement = value(shadow, "inlier_rel")
+    for tau in (0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95):
+        flagged = agreement >= tau
+        precision = (flagged & near).sum() / max(flagged.sum(), 1)
+        recall, false = (flagged & good).sum() / good.sum(), (flagged & wrong).sum() / wrong.sum()
+        lines.append(
+            f"| {tau:.2f} | {flagged.sum()} | {precision:.3f} | {recall:.3f} | {false:.3f} |"
+        )
+    lines += [
+        "",
+        f"Per image width at tau = {CHOSEN_TAU} (chosen on the development split):",
+        "",
+        "| width | conditions | good | flagged | precision | recall of good | wrong flagged |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    width, flagged = value(full, "width"), agreement >= CHOSEN_TAU
+    for w in sorted(set(width)):
+        at = width == w
+        f, n = flagged & at, len({k[0] for k, a in zip(keys, at, strict=True) if a})
+        lines.append(
+            f"| {w:.0f} | {n} | {(good & at).sum()} | {f.sum()} | "
+            f"{(f & near).sum() / max(f.sum(), 1):.3f} | "
+            f"{(f & good).sum() / max((good & at).sum(), 1):.3f} | "
+            f"{(f & wrong).sum() / max((wrong & at).sum(), 1):.3f} |"
+        )
+    return "\n".join(lines)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--run", action="store_true", help="run the seeds into frames_dev.csv")
+    parser.add_argument("--run", action="store_true", help="run the seeds into frames_SPLIT.csv")
+    parser.add_argument("--split", choices=sorted(SPLITS), default="dev")
     parser.add_argument("--seeds", type=parse_seeds, default=None, help="e.g. 5100-5119")
     parser.add_argument("--report", action="store_true", help="the AUC table")
+    parser.add_argument("--shadow", action="store_true", help="run the shadow filter's seeds")
+    parser.add_argument("--shadow-report", action="store_true", help="the shadow check's table")
+    parser.add_argument(
+        "--shadow-rounds", choices=SHADOWS, default="all", help="the shadow's variant"
+    )
     args = parser.parse_args(argv)
     if args.run:
-        run(args.seeds)
+        run(args.seeds, args.split)
+    if args.shadow:
+        run_shadow(args.seeds, args.shadow_rounds, args.split)
     if args.report:
-        print(report())
+        print(report(args.split))
+    if args.shadow_report:
+        print(shadow_report(args.shadow_rounds, args.split))
 
 
 if __name__ == "__main__":

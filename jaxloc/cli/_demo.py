@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -102,13 +103,17 @@ def run_demo(args: argparse.Namespace) -> int:
     capacity = args.particles or SG2LocConfig.capacity
     config = SG2LocConfig(capacity=capacity, strides=strides, kld=kld_for_capacity(capacity))
     key = jax.random.key(args.seed)
-    # the filter's programs compile on the second core while the query frames are rendered
-    # (make_episode's own two steps, split around it)
+    # the query frames render in a thread (numpy and XLA, mostly without the GIL) while this one
+    # traces the filter's programs, which then compile in warm_up's threads beside the rendering
     patches, dim = (sensor.patch_rows, sensor.patch_cols), room.embeddings.shape[1]
-    frame_shapes = FrameSequence.zeros(sensor.camera(), args.frames, patches, dim)
-    warm_up(key, scene, frame_shapes, config, progress=True)
-    del frame_shapes  # 50 MB of zeros at 960 x 540
-    episode = indoor.episode_in_room(room, room, args.seed, args.frames, episode_config)
+    with ThreadPoolExecutor(1) as pool:
+        rendering = pool.submit(
+            indoor.episode_in_room, room, room, args.seed, args.frames, episode_config
+        )
+        frame_shapes = FrameSequence.zeros(sensor.camera(), args.frames, patches, dim)
+        warm_up(key, scene, frame_shapes, config, progress=True)
+        del frame_shapes  # 50 MB of zeros at 960 x 540
+        episode = rendering.result()
     print(
         f"room {episode.room.size[0]:.1f} x {episode.room.size[1]:.1f} m: "
         f"{scene.num_objects} objects, {scene.num_triangles} triangles, map "

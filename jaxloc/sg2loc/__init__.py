@@ -13,13 +13,14 @@ particle sees: :func:`render`, :func:`render_batch`. The scores' settings:
 :class:`ObservationConfig` (and :func:`check_ssim_strides`, whether a stride leaves the colour
 score enough rays); KLD-sampling: :class:`KLDConfig` (:func:`kld_for_capacity`, the bounds for a
 particle capacity); the per-frame verdict: :class:`VerdictConfig`, :class:`Verdict` (its calibrated
-:class:`ConfidenceModel`).
+:class:`ConfidenceModel`); a check of estimates chosen without the depth:
+:func:`depth_agreement` (:class:`AgreementConfig`).
 
 Around them: :mod:`~jaxloc.sg2loc.refine` (6-DoF pose refinement), :mod:`~jaxloc.sg2loc.learn`
 (learning the likelihood parameters), :mod:`~jaxloc.sg2loc.retrieval` (scene retrieval),
 :mod:`~jaxloc.sg2loc.sharded` (particles split over devices) and :mod:`~jaxloc.sg2loc.figures`.
 The stages live in private modules (``_sequence``, ``_rendering``, ``_particles``, ``_scores``,
-``_resampling``, ``_verdict``, ``_filter``, ``_localization``).
+``_resampling``, ``_verdict``, ``_agreement``, ``_filter``, ``_localization``).
 """
 
 from typing import TYPE_CHECKING
@@ -36,6 +37,10 @@ if TYPE_CHECKING:  # where each public name comes from (jaxloc._lazy imports it 
         refine as refine,
         retrieval as retrieval,
         sharded as sharded,
+    )
+    from jaxloc.sg2loc._agreement import (
+        AgreementConfig as AgreementConfig,
+        depth_agreement as depth_agreement,
     )
     from jaxloc.sg2loc._filter import (
         Frame as Frame,

@@ -321,10 +321,12 @@ def warm_up(
     warm-up is still compiling: it can start at once, and each of its programs waits for the
     warm-up's compilation of it (all of them compile side by side, one thread each).
 
-    The programs are traced and lowered here, in the calling thread (that work holds the GIL, so
-    overlapping it with the caller's own Python would gain nothing), and compiled in the
-    background (XLA releases the GIL). They also go to the persistent compilation cache, where it
-    is enabled (with a progress bar, on one CPU device only: see ``progress``).
+    The programs are traced and lowered here, in the calling thread, and compiled in the
+    background (XLA releases the GIL). Tracing holds the GIL: work of the caller's that runs
+    without it (numpy, XLA, file reads) overlaps the tracing too when started in a thread of its
+    own before this call, as ``jaxloc demo`` renders its query frames. The programs also go to
+    the persistent compilation cache, where it is enabled (with a progress bar, on one CPU device
+    only: see ``progress``).
 
     Args:
         key: a PRNG key of the kind :func:`localize` will get (its value is not used).
