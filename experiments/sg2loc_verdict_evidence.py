@@ -23,11 +23,13 @@ the frames within 0.25 m and 5 degrees in the right room (good) from the wrong p
 
 ``--shadow`` localizes the sequences of the conditions whose filter scores depth again, without
 depth (a depth-blind *shadow* filter: ``--shadow-rounds all``, the condition's rounds; ``first``,
-only its first round's stride; ``quarter``, every round with a quarter of the particles), and
-logs the depth agreement of the shadow's estimates. ``--shadow-report`` judges the check "the
-shadow's estimate agrees with the recording's depth on >= tau of its rays" on the estimates of
-the filter that scores depth: flagged frames, precision (within 0.5 m and 10 degrees), recall of
-the good frames and wrong-place frames flagged, per tau.
+only its first round's stride; ``quarter``, every round with a quarter of the particles;
+``stream``, the filter with depth and the depth-blind one both as streams,
+:func:`jaxloc.sg2loc.online.filter_sequence`), and logs the depth agreement of the shadow's
+estimates. ``--shadow-report`` judges the check "the shadow's estimate agrees with the
+recording's depth on >= tau of its rays" on the estimates of the filter that scores depth:
+flagged frames, precision (within 0.5 m and 10 degrees), recall of the good frames and
+wrong-place frames flagged, per tau.
 
 ``--split kinect`` runs the held-out generator variant of ``sg2loc_verdict_conditions.py`` (the
 ``"kinect"`` depth model, sizes 320x180 to 960x540) instead of the development conditions.
@@ -38,8 +40,11 @@ the good frames and wrong-place frames flagged, per tau.
     JAX_PLATFORMS=cpu python experiments/sg2loc_verdict_evidence.py --shadow --seeds 5100-5123
     python experiments/sg2loc_verdict_evidence.py --shadow-report
     JAX_PLATFORMS=cpu python experiments/sg2loc_verdict_evidence.py --split kinect --run \
-        --shadow --seeds 7100-7111
+        --shadow --seeds 7100-7123
     python experiments/sg2loc_verdict_evidence.py --split kinect --report --shadow-report
+    JAX_PLATFORMS=cpu python experiments/sg2loc_verdict_evidence.py --shadow --shadow-rounds \
+        stream --seeds 5100-5123
+    python experiments/sg2loc_verdict_evidence.py --shadow-report --shadow-rounds stream
 """
 
 from __future__ import annotations
@@ -215,9 +220,58 @@ def run(seeds, split: str) -> None:
             print(f"seed {seed} {kind} {condition['width']}px: {out['seconds']:.0f} s", flush=True)
 
 
-#: The shadow filter's variants: the condition's every round, only its first round's stride, or
-#: every round with a quarter of the particles.
-SHADOWS = ("all", "first", "quarter")
+#: The shadow filter's variants: the condition's every round, only its first round's stride,
+#: every round with a quarter of the particles, or streaming (both filters as streams).
+SHADOWS = ("all", "first", "quarter", "stream")
+STREAM_FIELDS = ["seed", "kind", "frame", "width", "pos", "rot", "seconds", "inlier_rel"]
+STREAM_FIELDS += ["inlier_20"]
+STREAM_FIELDS += ["depth_inlier_rel", "depth_inlier_20"]
+
+
+def stream_and_check(seed: int, kind: str, condition: dict, shared) -> list[dict]:
+    """Stream the ``kind`` sequence of ``condition`` (:func:`jaxloc.sg2loc.online.filter_sequence`,
+    no relocalization) with depth and depth-blind: per frame the errors of the stream with depth,
+    and the depth agreement (:func:`jaxloc.sg2loc.depth_agreement`, on the stream's stride) of both
+    streams' estimates (``depth_`` the stream with depth)."""
+    import jax
+
+    from jaxloc.metrics import yaw_pose_errors
+    from jaxloc.sg2loc import AgreementConfig, depth_agreement, online
+    from jaxloc.synthetic.indoor import make_episode, make_lookalike_episode
+
+    generator = episode_config(condition)
+    if kind == "right":
+        episode = make_episode(seed, 10, generator)
+    else:
+        episode = make_lookalike_episode(seed, seed + PLACE_OFFSET, 10, generator)
+    scene, sequence = shared.scene(episode.room), episode.sequence
+    start, shares = time.perf_counter(), {}
+    for name, c in (("depth_", condition), ("", dict(condition, use_depth=0))):
+        config = sg2loc_config(c)
+        stream = online.filter_sequence(jax.random.key(seed), scene, sequence, config)
+        for suffix, tolerance in (("inlier_rel", None), ("inlier_20", AgreementConfig(0.2, 0.0))):
+            share = depth_agreement(scene, sequence, stream.pose, config.strides[0], tolerance)
+            shares[name + suffix] = np.asarray(share)
+        if name == "depth_":  # the estimate a user acts on
+            poses = np.asarray(stream.pose)
+    if episode.in_map:
+        pos, rot = yaw_pose_errors(poses, episode.poses_gt)
+    else:
+        pos = rot = np.full(len(poses), np.nan)
+    seconds = round(time.perf_counter() - start, 2)
+    return [
+        {
+            "seed": seed,
+            "kind": kind,
+            "frame": t,
+            "width": condition["width"],
+            "pos": round(float(pos[t]), 4),
+            "rot": round(float(rot[t]), 3),
+            "seconds": seconds,
+            **{k: round(float(v[t]), 4) for k, v in shares.items()},
+        }
+        for t in range(len(poses))
+    ]
 
 
 def shadow_file(rounds: str, split: str) -> Path:
@@ -248,6 +302,10 @@ def run_shadow(seeds, rounds: str, split: str) -> None:
             blind["capacity"] = condition["capacity"] // 4
         for kind in ("right", "wrong"):
             if (seed, kind) in done:
+                continue
+            if rounds == "stream":
+                append_rows(path, STREAM_FIELDS, stream_and_check(seed, kind, condition, shared))
+                print(f"stream {seed} {kind} {condition['width']}px", flush=True)
                 continue
             out = localize_and_check(seed, kind, blind, shared)
             rows = [
@@ -319,6 +377,11 @@ def shadow_report(rounds: str, split: str) -> str:
         with path.open() as f:
             tables.append({(r["seed"], r["kind"], r["frame"]): r for r in csv.DictReader(f)})
     full, shadow = tables
+    if rounds == "stream":  # the streams' own file holds the stream with depth's terms
+        full = {
+            k: dict(r, inlier_rel=r["depth_inlier_rel"], inlier_20=r["depth_inlier_20"])
+            for k, r in shadow.items()
+        }
     keys = sorted(k for k in shadow if k in full)
     value = lambda table, name: np.array([float(table[k][name]) for k in keys])  # noqa: E731
     right = np.array([k[1] == "right" for k in keys])

@@ -103,10 +103,8 @@ def run_demo(args: argparse.Namespace) -> int:
     capacity = args.particles or SG2LocConfig.capacity
     config = SG2LocConfig(capacity=capacity, strides=strides, kld=kld_for_capacity(capacity))
     key = jax.random.key(args.seed)
-    # the query frames render in a thread (numpy and XLA, mostly without the GIL) while this one
-    # traces the filter's programs, which then compile in warm_up's threads beside the rendering
     patches, dim = (sensor.patch_rows, sensor.patch_cols), room.embeddings.shape[1]
-    with ThreadPoolExecutor(1) as pool:
+    with ThreadPoolExecutor(1) as pool:  # the query renders (mostly GIL-free) as the filter traces
         rendering = pool.submit(
             indoor.episode_in_room, room, room, args.seed, args.frames, episode_config
         )
@@ -117,8 +115,7 @@ def run_demo(args: argparse.Namespace) -> int:
     print(
         f"room {episode.room.size[0]:.1f} x {episode.room.size[1]:.1f} m: "
         f"{scene.num_objects} objects, {scene.num_triangles} triangles, map "
-        f"{scene.storage_mb():.2f} MB ({time.perf_counter() - start:.1f} s to "
-        "build)"
+        f"{scene.storage_mb():.2f} MB ({time.perf_counter() - start:.1f} s to build)"
     )
     camera = episode.sequence.camera
     grid = stride_grid(camera, min(10, strides[0]), *episode.sequence.patch_shape)
