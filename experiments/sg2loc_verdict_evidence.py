@@ -59,7 +59,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from sg2loc_verdict import PLACE_OFFSET, parse_seeds  # noqa: E402
+from sg2loc_verdict import PLACE_OFFSET, judge, parse_seeds  # noqa: E402
 from sg2loc_verdict_conditions import (  # noqa: E402
     draw_condition,
     episode_config,
@@ -117,6 +117,17 @@ def depth_agreement(rendered: np.ndarray, sensor: np.ndarray) -> dict[str, float
     }
 
 
+def episode_of(seed: int, kind: str, condition: dict):
+    """The 10-frame ``right`` episode of ``seed`` under ``condition``, or its look-alike wrong
+    place (``wrong``)."""
+    from jaxloc.synthetic.indoor import make_episode, make_lookalike_episode
+
+    generator = episode_config(condition)
+    if kind == "right":
+        return make_episode(seed, 10, generator)
+    return make_lookalike_episode(seed, seed + PLACE_OFFSET, 10, generator)
+
+
 def localize_and_check(seed: int, kind: str, condition: dict, shared) -> dict:
     """Localize the ``kind`` sequence of ``condition`` offline and render each frame's estimate on
     the final round's grid: ``{"pos", "rot"}`` (T,) errors (NaN in a wrong place), ``"verdict"``
@@ -129,13 +140,8 @@ def localize_and_check(seed: int, kind: str, condition: dict, shared) -> dict:
     from jaxloc.sg2loc import localize
     from jaxloc.sg2loc._filter import frames_on_grid
     from jaxloc.sg2loc._rendering import render
-    from jaxloc.synthetic.indoor import make_episode, make_lookalike_episode
 
-    config, generator = sg2loc_config(condition), episode_config(condition)
-    if kind == "right":
-        episode = make_episode(seed, 10, generator)
-    else:
-        episode = make_lookalike_episode(seed, seed + PLACE_OFFSET, 10, generator)
+    config, episode = sg2loc_config(condition), episode_of(seed, kind, condition)
     scene, sequence = shared.scene(episode.room), episode.sequence
     start = time.perf_counter()
     result = localize(jax.random.key(seed), scene, sequence, config)
@@ -237,13 +243,8 @@ def stream_and_check(seed: int, kind: str, condition: dict, shared) -> list[dict
 
     from jaxloc.metrics import yaw_pose_errors
     from jaxloc.sg2loc import AgreementConfig, depth_agreement, online
-    from jaxloc.synthetic.indoor import make_episode, make_lookalike_episode
 
-    generator = episode_config(condition)
-    if kind == "right":
-        episode = make_episode(seed, 10, generator)
-    else:
-        episode = make_lookalike_episode(seed, seed + PLACE_OFFSET, 10, generator)
+    episode = episode_of(seed, kind, condition)
     scene, sequence = shared.scene(episode.room), episode.sequence
     start, shares = time.perf_counter(), {}
     for name, c in (("depth_", condition), ("", dict(condition, use_depth=0))):
@@ -413,13 +414,13 @@ def shadow_report(rounds: str, split: str) -> str:
         "good | wrong-place frames flagged |",
         "|---|---|---|---|---|",
     ]
-    agreement = value(shadow, "inlier_rel")
+    agreement, every = value(shadow, "inlier_rel"), np.ones(len(keys), bool)
+    data = {"kind": np.array([k[1] for k in keys]), "pos": pos, "rot": rot}
     for tau in (0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95):
-        flagged = agreement >= tau
-        precision = (flagged & near).sum() / max(flagged.sum(), 1)
-        recall, false = (flagged & good).sum() / good.sum(), (flagged & wrong).sum() / wrong.sum()
+        j = judge(data, agreement >= tau, every)
         lines.append(
-            f"| {tau:.2f} | {flagged.sum()} | {precision:.3f} | {recall:.3f} | {false:.3f} |"
+            f"| {tau:.2f} | {j['flagged']} | {j['precision']:.3f} | {j['recall']:.3f} | "
+            f"{j['false_accept']:.3f} |"
         )
     lines += [
         "",
@@ -428,15 +429,13 @@ def shadow_report(rounds: str, split: str) -> str:
         "| width | conditions | good | flagged | precision | recall of good | wrong flagged |",
         "|---|---|---|---|---|---|---|",
     ]
-    width, flagged = value(full, "width"), agreement >= CHOSEN_TAU
+    width = value(full, "width")
     for w in sorted(set(width)):
         at = width == w
-        f, n = flagged & at, len({k[0] for k, a in zip(keys, at, strict=True) if a})
+        j, n = judge(data, agreement >= CHOSEN_TAU, at), len({k[0] for k in np.array(keys)[at]})
         lines.append(
-            f"| {w:.0f} | {n} | {(good & at).sum()} | {f.sum()} | "
-            f"{(f & near).sum() / max(f.sum(), 1):.3f} | "
-            f"{(f & good).sum() / max((good & at).sum(), 1):.3f} | "
-            f"{(f & wrong).sum() / max((wrong & at).sum(), 1):.3f} |"
+            f"| {w:.0f} | {n} | {j['good']} | {j['flagged']} | {j['precision']:.3f} | "
+            f"{j['recall']:.3f} | {j['false_accept']:.3f} |"
         )
     return "\n".join(lines)
 
