@@ -11,8 +11,8 @@ against an empty compilation cache of their own) beside ``python -c "import jax"
 * ``jaxloc build-lidar-map SEQ OUT``: a synthetic 16-scan SemanticKITTI sequence (labelled
   scans and poses) into an instance map, first and second run;
 * ``jaxloc localize-camera MAP.npz SEQ``: a 6-frame synthetic ScanNet export folder at 160x120,
-  300 particles, with the command line's default progress bar (one scan per round, ticked from
-  inside it), first and second run;
+  300 particles, with the command line's default progress bar (ticked from inside the rounds'
+  program), first and second run;
 * ``jaxloc demo`` (the paper's scale unless ``--demo-args`` says else): first and second run.
 
 Each pair runs with ``JAXLOC_CACHE_DIR`` set to a fresh folder; ``--no-cache`` times the

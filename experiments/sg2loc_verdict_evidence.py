@@ -138,8 +138,8 @@ def localize_and_check(seed: int, kind: str, condition: dict, shared) -> dict:
     from jaxloc import stride_grid
     from jaxloc.metrics import yaw_pose_errors
     from jaxloc.sg2loc import localize
-    from jaxloc.sg2loc._filter import frames_on_grid
     from jaxloc.sg2loc._rendering import render
+    from jaxloc.sg2loc._sequence import frames_on_grid
 
     config, episode = sg2loc_config(condition), episode_of(seed, kind, condition)
     scene, sequence = shared.scene(episode.room), episode.sequence

@@ -17,11 +17,11 @@ import trimesh
 
 from jaxloc.camera import Camera, patch_grid
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc._filter import Frame, Region, StepConfig, run_pass
+from jaxloc.sg2loc._filter import Region, StepConfig, run_pass
 from jaxloc.sg2loc._particles import ParticleState, init_region
 from jaxloc.sg2loc._resampling import KLDConfig
 from jaxloc.sg2loc._scores import ObservationConfig
-from jaxloc.sg2loc._sequence import FrameSequence
+from jaxloc.sg2loc._sequence import Frame, FrameSequence
 
 CAPACITY = 16
 EMBEDDING_DIM = 8

@@ -23,7 +23,7 @@ from jaxloc.sg2loc import (
     render_batch,
 )
 from jaxloc.sg2loc._agreement import agreeing_share
-from jaxloc.sg2loc._filter import frames_on_grid
+from jaxloc.sg2loc._sequence import frames_on_grid
 from jaxloc.synthetic.indoor import make_episode, make_lookalike_episode
 
 STRIDE = 8

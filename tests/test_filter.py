@@ -40,13 +40,13 @@ from jaxloc.sg2loc._filter import (
     Region,
     StepConfig,
     default_chunk_rays,
-    frames_on_grid,
     run_pass,
     step,
 )
 from jaxloc.sg2loc._particles import ParticleState, init_region
 from jaxloc.sg2loc._resampling import KLDConfig
 from jaxloc.sg2loc._scores import DEPTH_MAX, SEMANTIC_MAX, ObservationConfig
+from jaxloc.sg2loc._sequence import frames_on_grid
 from jaxloc.sharding import device_mesh
 from jaxloc.synthetic.indoor import EpisodeConfig, RoomConfig, SensorConfig, make_episode
 
@@ -443,7 +443,7 @@ def shapes_only(sequence: FrameSequence) -> FrameSequence:
 
 @pytest.fixture(scope="module")
 def located(episode, scene) -> SG2LocResult:
-    """With a progress bar (a host call in each round's scan), compiled beforehand by
+    """With a progress bar (a host call in the rounds' scan), compiled beforehand by
     ``warm_up`` from a placeholder sequence of zeros."""
     key = jax.random.key(LOCALIZE_KEY)
     before_warm_up = len(COMPILED)
@@ -456,16 +456,17 @@ def located(episode, scene) -> SG2LocResult:
     assert warming.result() is None
     here = threading.current_thread().name
     LOCATED_COMPILES.extend(c for c in COMPILED[compiled:] if c.startswith(f"{here}: "))
-    rounds = re.compile(r"jaxloc-warm-up_\d+: jit\(_round\)")
+    rounds = re.compile(r"jaxloc-warm-up_\d+: jit\(all_rounds\)")
     LOCATED_WARM_UP_ROUNDS.extend(c for c in COMPILED[before_warm_up:] if rounds.fullmatch(c))
     return result
 
 
-def test_the_warm_up_compiles_one_scan_per_round(located):
-    """Each round is one program (its ``lax.scan`` over the frames, with the progress bar's
-    call): the warm-up compiled two for the two rounds, round 0's over the floor and round 1's
-    in a box on a denser grid (no other test of this module ran them with these shapes before)."""
-    assert len(LOCATED_WARM_UP_ROUNDS) == 2
+def test_the_warm_up_compiles_one_program_for_all_rounds(located):
+    """The rounds are one program (a scan over the rounds of the step's scan over the frames,
+    with the progress bar's call), though round 0 spreads over the floor and round 1 starts in a
+    box on a denser grid: the warm-up compiled it once (no other test of this module ran it
+    with these shapes before)."""
+    assert len(LOCATED_WARM_UP_ROUNDS) == 1
 
 
 def test_after_a_warm_up_localize_compiles_nothing(located):

@@ -24,9 +24,10 @@ from test_filter import EPISODE_CONFIG, assert_bitwise_equal
 from jaxloc import FrameSequence
 from jaxloc.camera import stride_grid
 from jaxloc.sg2loc import SG2LocConfig, localize
-from jaxloc.sg2loc._filter import Region, frames_on_grid, grid_pixels
+from jaxloc.sg2loc._filter import Region
 from jaxloc.sg2loc._localization import warm_up
 from jaxloc.sg2loc._resampling import KLDConfig
+from jaxloc.sg2loc._sequence import frames_on_grid, grid_pixels
 from jaxloc.sg2loc._verdict import VerdictConfig
 from jaxloc.synthetic.indoor import make_episode
 

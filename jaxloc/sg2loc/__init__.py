@@ -20,7 +20,7 @@ Around them: :mod:`~jaxloc.sg2loc.refine` (6-DoF pose refinement), :mod:`~jaxloc
 (learning the likelihood parameters), :mod:`~jaxloc.sg2loc.retrieval` (scene retrieval),
 :mod:`~jaxloc.sg2loc.sharded` (particles split over devices) and :mod:`~jaxloc.sg2loc.figures`.
 The stages live in private modules (``_sequence``, ``_rendering``, ``_particles``, ``_scores``,
-``_resampling``, ``_verdict``, ``_agreement``, ``_filter``, ``_localization``).
+``_resampling``, ``_verdict``, ``_agreement``, ``_filter``, ``_rounds``, ``_localization``).
 """
 
 from typing import TYPE_CHECKING
@@ -43,18 +43,15 @@ if TYPE_CHECKING:  # where each public name comes from (jaxloc._lazy imports it 
         depth_agreement as depth_agreement,
     )
     from jaxloc.sg2loc._filter import (
-        Frame as Frame,
         Region as Region,
         StepConfig as StepConfig,
         StepInfo as StepInfo,
-        frames_on_grid as frames_on_grid,
         run_pass as run_pass,
         step as step,
     )
     from jaxloc.sg2loc._localization import (
         SG2LocConfig as SG2LocConfig,
         SG2LocResult as SG2LocResult,
-        carry_back as carry_back,
         localize as localize,
         warm_up as warm_up,
     )
@@ -71,12 +68,17 @@ if TYPE_CHECKING:  # where each public name comes from (jaxloc._lazy imports it 
         KLDConfig as KLDConfig,
         kld_for_capacity as kld_for_capacity,
     )
+    from jaxloc.sg2loc._rounds import (
+        carry_back as carry_back,
+    )
     from jaxloc.sg2loc._scores import (
         ObservationConfig as ObservationConfig,
         check_ssim_strides as check_ssim_strides,
     )
     from jaxloc.sg2loc._sequence import (
+        Frame as Frame,
         FrameSequence as FrameSequence,
+        frames_on_grid as frames_on_grid,
     )
     from jaxloc.sg2loc._verdict import (
         ConfidenceModel as ConfidenceModel,

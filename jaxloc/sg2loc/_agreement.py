@@ -20,9 +20,8 @@ from jax import Array
 from jaxloc.camera import stride_grid
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc._convert import as_float32
-from jaxloc.sg2loc._filter import frames_on_grid
 from jaxloc.sg2loc._rendering import render
-from jaxloc.sg2loc._sequence import FrameSequence
+from jaxloc.sg2loc._sequence import FrameSequence, frames_on_grid
 
 
 class AgreementConfig(eqx.Module):

@@ -8,12 +8,13 @@ KLD-sampling resampling into the padded buffer and optional random-particle inje
 are public too: :func:`predict_step`, :func:`score_active` (the only part that reads the ray grid)
 and :func:`update_step` (with :class:`UpdateConfig`, the grid-free part of :class:`StepConfig`).
 
-Everything that varies per frame is a traced :class:`Frame`; the map, the particle capacity, the
-ray grid and the score variants fix the compiled shapes, so a new frame, a new map of the same
-capacity or a new value of sigma / lambda / epsilon never recompiles. :func:`run_pass` can tick a
-progress bar after each frame (a host call inside its scan). The host-side helpers
-(:meth:`Region.of_scene`, :func:`grid_pixels`, :func:`frames_on_grid`) use NumPy on concrete
-inputs (no program compiled) and ``jax.numpy`` on traced ones (inside a caller's ``jit``).
+Everything that varies per frame is a traced :class:`~jaxloc.sg2loc.Frame`; the map, the particle
+capacity, the ray grid and the score variants fix the compiled shapes, so a new frame, a new map of
+the same capacity or a new value of sigma / lambda / epsilon never recompiles. :func:`run_pass`
+can tick a progress bar after each frame (a host call inside its scan). The frames come from a
+:class:`~jaxloc.FrameSequence` through :func:`~jaxloc.sg2loc.frames_on_grid`. The host-side
+helpers (:meth:`Region.of_scene`, ``frames_on_grid``) use NumPy on concrete inputs (no program
+compiled) and ``jax.numpy`` on traced ones (inside a caller's ``jit``).
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from jaxloc.sg2loc._scores import (
     match_patches,
     particle_log_likelihood,
 )
-from jaxloc.sg2loc._sequence import FrameSequence
+from jaxloc.sg2loc._sequence import Frame
 from jaxloc.sg2loc._verdict import Verdict, VerdictConfig, judge
 
 
@@ -166,26 +167,6 @@ class StepConfig(eqx.Module):
         return max(1, min(default_chunk_rays(platform) // self.grid.uv.shape[0], capacity))
 
 
-class Frame(eqx.Module):
-    """One frame's observations, sampled on the pass's ray grid (R rays, P patches, d dims).
-
-    Attributes:
-        index: int32 frame number in the sequence.
-        motion: (4,) float32 ego-motion from the previous frame (zeros for the first frame).
-        patch_embeddings: (P, d) float32.
-        depth: (R,) float32 sensor depth at the rays' pixels (0 = invalid).
-        rgb: (h, w, 3) float32 colour at the rays' pixels, the ray image's shape.
-        tilt: (2,) float32 (pitch, roll).
-    """
-
-    index: Array
-    motion: Array
-    patch_embeddings: Array
-    depth: Array
-    rgb: Array
-    tilt: Array
-
-
 class StepInfo(NamedTuple):
     """Diagnostics of one step (scalars unless noted).
 
@@ -217,50 +198,6 @@ class StepInfo(NamedTuple):
     particles: Array
     particle_weights: Array
     verdict: Verdict
-
-
-def grid_pixels(camera: Camera, grid: RayGrid) -> tuple[np.ndarray | Array, np.ndarray | Array]:
-    """The image pixel (row, column) of every ray of ``grid``: two (R,) int32 arrays, the nearest
-    pixel centre, clipped to the image. NumPy arrays for a concrete grid (host side), traced ones
-    for a traced grid."""
-    xp = jnp if isinstance(grid.uv, jax.core.Tracer) else np
-    uv = xp.asarray(grid.uv)
-    cols = xp.clip(xp.rint(uv[:, 0]).astype(xp.int32), 0, camera.width - 1)
-    rows = xp.clip(xp.rint(uv[:, 1]).astype(xp.int32), 0, camera.height - 1)
-    return rows, cols
-
-
-def frames_on_grid(sequence: FrameSequence, grid: RayGrid) -> Frame:
-    """All frames of a sequence sampled on a ray grid, stacked with a leading T axis (with NumPy
-    for a concrete sequence and grid, ``jax.numpy`` for traced ones)."""
-    num_frames = sequence.num_frames
-    rows_p, cols_p = sequence.patch_shape
-    if (rows_p, cols_p) != (grid.rows, grid.cols):
-        raise ValueError(
-            f"the sequence has a {rows_p}x{cols_p} patch grid but the ray grid uses "
-            f"{grid.rows}x{grid.cols} patches"
-        )
-    rows, cols = grid_pixels(sequence.camera, grid)
-    xp = np if concrete(*jax.tree.leaves((sequence, rows))) else jnp
-    h, w = grid.shape
-    if sequence.depth is not None:
-        depth = xp.asarray(sequence.depth)[:, rows, cols]
-    else:
-        depth = xp.zeros((num_frames, rows.shape[0]), xp.float32)
-    if sequence.rgb is not None:
-        rgb = xp.asarray(sequence.rgb)[:, rows, cols].reshape(num_frames, h, w, 3)
-    else:
-        rgb = xp.zeros((num_frames, h, w, 3), xp.float32)
-    motion = xp.concatenate([xp.zeros((1, 4), xp.float32), xp.asarray(sequence.ego_motion)])
-    embeddings = xp.asarray(sequence.patch_embeddings).reshape(num_frames, rows_p * cols_p, -1)
-    return Frame(  # device_put: jnp.asarray would compile a conversion program per host array
-        index=jax.device_put(np.arange(num_frames, dtype=np.int32)),
-        motion=jax.device_put(motion),
-        patch_embeddings=jax.device_put(embeddings),
-        depth=jax.device_put(depth),
-        rgb=jax.device_put(rgb),
-        tilt=jax.device_put(sequence.tilt),
-    )
 
 
 def _score_poses(
@@ -386,8 +323,9 @@ def predict_step(
 
 class UpdateConfig(eqx.Module):
     """The part of :class:`StepConfig` that :func:`update_step` reads (no camera, no ray grid);
-    fields as in :class:`StepConfig`, and ``num_rays``, the rays per particle of its grid (static,
-    for :attr:`~jaxloc.sg2loc.Verdict.confidence`)."""
+    fields as in :class:`StepConfig`, and ``num_rays``, the int32 rays per particle of its grid
+    (traced, for :attr:`~jaxloc.sg2loc.Verdict.confidence`: rounds of several strides share one
+    update)."""
 
     observation: ObservationConfig
     kld: KLDConfig
@@ -396,7 +334,7 @@ class UpdateConfig(eqx.Module):
     inject_every: int = eqx.field(static=True)
     heights: Array
     verdict: VerdictConfig
-    num_rays: int = eqx.field(static=True)
+    num_rays: Array = eqx.field(converter=as_int32)
 
 
 def update_step(
@@ -456,6 +394,26 @@ def step(
     is not moved: its particles are the initial set. A non-finite ego-motion counts as zero
     motion and is flagged in ``info.motion_valid``.
     """
+
+    def score(moved: ParticleState, match: PatchMatch) -> Scores:
+        return score_active(moved, frame, scene, config, match)
+
+    return step_scored_by(key, state, frame, scene, config, config.update, score)
+
+
+def step_scored_by(
+    key: Array,
+    state: ParticleState,
+    frame: Frame,
+    scene: SceneGraph,
+    config: StepConfig,
+    update: UpdateConfig,
+    score,
+) -> tuple[ParticleState, StepInfo]:
+    """:func:`step` with its scoring given: ``score(state, match) -> Scores`` of the moved
+    particles (:func:`score_active` on some ray grid); ``frame`` supplies the index, the
+    ego-motion and the patch embeddings, ``config`` the motion noise. The rounds of
+    :func:`~jaxloc.sg2loc.localize` share everything but the scoring this way."""
     with jax.named_scope("predict"):
         state, motion_valid = predict_step(
             key, state, frame.index, frame.motion, config.sigma_trans, config.sigma_rot
@@ -463,9 +421,9 @@ def step(
     with jax.named_scope("match"):
         match = match_patches(frame.patch_embeddings, scene.embeddings, scene.object_valid)
     with jax.named_scope("score"):
-        scores = score_active(state, frame, scene, config, match)
+        scores = score(state, match)
     with jax.named_scope("update"):
-        return update_step(key, state, scores, match, frame.index, motion_valid, config.update)
+        return update_step(key, state, scores, match, frame.index, motion_valid, update)
 
 
 def run_pass(

@@ -6,9 +6,12 @@ later round carries the previous round's last-frame MLE back to the first frame 
 ego-motion, re-initialises the particles in a box around it (half-widths ``box_half_widths``) and
 casts a denser ray grid. The paper's defaults are strides 20, 8, 4 and boxes of 1.6^3 then 0.8^3 m.
 
-A round is one compiled ``lax.scan`` of :func:`~jaxloc.sg2loc.step` over the frames
-(:func:`~jaxloc.sg2loc.run_pass`); later rounds of one stride share their program. With
-``progress=True`` a host call inside that scan ticks a progress bar after every frame.
+All rounds are one compiled program: a ``lax.scan`` over the rounds of a ``lax.scan`` of the
+filter step over the frames (:func:`~jaxloc.sg2loc.step`, as in
+:func:`~jaxloc.sg2loc.run_pass`). The rounds share the prediction, the update and the
+re-initialisation, and choose their stride's scoring with ``lax.switch``, so the first call
+traces and compiles each part once. With ``progress=True`` a host call inside the frames' scan
+ticks a progress bar after every frame.
 
 :func:`localize` composes with the caller's transformations: it runs inside ``jax.jit`` (key,
 scene, sequence and configuration may all be traced) and ``jax.vmap`` (over keys, over the array
@@ -27,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import threading
 from concurrent.futures import Future
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -38,7 +41,6 @@ from jax.sharding import Mesh
 
 from jaxloc._traced import concrete
 from jaxloc.camera import Camera, stride_grid
-from jaxloc.geometry import uncompose_yaw
 from jaxloc.raycasting.engines import check_engine_name
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc._convert import as_float32, as_int32, finite_nonnegative, shown
@@ -47,21 +49,18 @@ from jaxloc.sg2loc._filter import (
     StepConfig,
     StepInfo,
     check_particle_chunk,
-    frames_on_grid,
-    run_pass,
 )
 from jaxloc.sg2loc._particles import (
     DEFAULT_BOX_YAW_HALF_RANGE,
     PAPER_HEIGHTS,
-    init_box,
-    init_region,
 )
 from jaxloc.sg2loc._progress import FrameBar
 from jaxloc.sg2loc._resampling import KLDConfig
+from jaxloc.sg2loc._rounds import all_rounds
 from jaxloc.sg2loc._scores import ObservationConfig, check_ssim_strides
-from jaxloc.sg2loc._sequence import FrameSequence
+from jaxloc.sg2loc._sequence import FrameSequence, frames_on_grid
 from jaxloc.sg2loc._verdict import VerdictConfig, default_verdict
-from jaxloc.sharding import check_divisible, pin_split
+from jaxloc.sharding import check_divisible
 
 
 class SG2LocConfig(eqx.Module):
@@ -179,41 +178,6 @@ class SG2LocResult(NamedTuple):
     used_color: bool
 
 
-@jax.jit
-def carry_back(pose: Array, ego_motion: Array) -> Array:
-    """Carry the last frame's pose (4,) back to the first frame through ``ego_motion`` (T-1, 4)."""
-
-    def back(current, motion):
-        return uncompose_yaw(current, motion), None
-
-    first, _ = jax.lax.scan(back, pose, ego_motion, reverse=True)
-    return first
-
-
-def _initial_state(key, box, region: Region, heights, capacity: int, mesh: Mesh | None):
-    """Round 0's particles over ``region`` at ``heights`` (``box`` None), or a later round's in
-    the box ``(centre (4,), half_widths (B,), index (int32), yaw_half_range)``: half-width
-    ``half_widths[index]`` around ``centre`` (the index traced, so later rounds of one stride
-    share their program)."""
-    if box is None:
-        state = init_region(key, capacity, region.lo, region.hi, region.floor_z, heights=heights)
-    else:
-        centre, half_widths, index, yaw_half_range = box
-        half_width = jnp.full((3,), half_widths[index])
-        state = init_box(key, capacity, centre, half_width, yaw_half_range)
-    return state if mesh is None else pin_split(state, mesh)
-
-
-@eqx.filter_jit
-def _round(key, box, frames, scene, step_config, capacity: int, mesh: Mesh | None, progress):
-    """One pass of the filter over ``frames`` (stacked on T), one program: ``(final state,
-    per-frame infos stacked on T)``. ``progress``: a progress bar's id, or None (see
-    :func:`~jaxloc.sg2loc.run_pass`)."""
-    key_init, key_run = jax.random.split(key)
-    state = _initial_state(key_init, box, step_config.region, step_config.heights, capacity, mesh)
-    return run_pass(key_run, state, frames, scene, step_config, progress)
-
-
 def _call(program, *args):
     return program(*args)
 
@@ -247,13 +211,6 @@ def _zeros(shape: jax.ShapeDtypeStruct) -> Array:
     return jax.device_put(np.zeros(shape.shape, shape.dtype))  # compiles nothing
 
 
-@jax.jit
-def _stacked(items: list) -> Any:
-    """A list of pytrees of one structure (per-round results) as one pytree, every leaf stacked
-    along a new leading axis."""
-    return jax.tree.map(lambda *xs: jnp.stack(xs), *items)
-
-
 def localize(
     key: Array,
     scene: SceneGraph,
@@ -277,7 +234,7 @@ def localize(
         sequence: the query (its patch grid fixes the semantic patches).
         config: :class:`SG2LocConfig` (paper defaults).
         progress: show a progress bar over rounds x frames, ticked by a host call from inside
-            each round's compiled scan (the same result as without). Not shown when ``key`` is
+            the rounds' compiled scan (the same result as without). Not shown when ``key`` is
             traced (inside a caller's ``jax.jit``, or a ``jax.vmap`` over keys). On a GPU or with
             ``mesh`` the host call is a Python callback, and JAX keeps such programs out of its
             persistent compilation cache.
@@ -458,38 +415,24 @@ def _checked(scene, sequence, config: SG2LocConfig, mesh) -> tuple[StepConfig, .
 
 def _run_rounds(keys, scene, sequence, config, step_configs, bar_id, mesh, run) -> SG2LocResult:
     """The rounds of :func:`localize` (one key of ``keys`` each; ``step_configs`` from
-    :func:`_checked`; ``bar_id`` a progress bar's id or None), each jitted program run by ``run``
-    (:func:`_call`; a :class:`_Lowering` lowers them instead)."""
-    centre = np.full((4,), np.nan, np.float32)
-    starts, round_mle, counts, particles, weights = [], [], [], [], []
-    info = None
-    for r, step_config in enumerate(step_configs):
-        box = (
-            None
-            if r == 0
-            else (centre, config.box_half_widths, np.int32(r - 1), config.yaw_half_range)
-        )
-        frames = frames_on_grid(sequence, step_config.grid)
-        round_args = (keys[r], box, frames, scene, step_config, config.capacity, mesh, bar_id)
-        _, info = run(_round, *round_args)
-        starts.append(centre)
-        round_mle.append(info.mle)
-        counts.append(info.num_particles)
-        particles.append(info.particles)
-        weights.append(info.particle_weights)
-        centre = run(carry_back, info.mle[-1], sequence.ego_motion)
-    round_mle, starts, counts, particles, weights = run(
-        _stacked, list(zip(round_mle, starts, counts, particles, weights, strict=True))
-    )
+    :func:`_checked`; ``bar_id`` a progress bar's id or None), their one program run by ``run``
+    (:func:`_call`; a :class:`_Lowering` lowers it instead)."""
+    distinct = list(dict.fromkeys(config.strides))
+    branches = tuple(distinct.index(stride) for stride in config.strides)
+    configs = tuple(step_configs[config.strides.index(stride)] for stride in distinct)
+    frames = tuple(frames_on_grid(sequence, c.grid) for c in configs)
+    boxes = (config.box_half_widths, config.yaw_half_range)
+    program_args = (keys, frames, scene, configs, branches, boxes, sequence.ego_motion)
+    info, infos, starts = run(all_rounds, *program_args, config.capacity, mesh, bar_id)
     return SG2LocResult(
         poses=info.mle,
         localized=info.verdict.localized,
-        round_mle=round_mle,
+        round_mle=infos.mle,
         round_start=starts,
-        num_particles=counts,
+        num_particles=infos.num_particles,
         info=info,
-        particles=particles,
-        particle_weights=weights,
+        particles=infos.particles,
+        particle_weights=infos.particle_weights,
         used_depth=step_configs[0].observation.use_depth,
         used_color=step_configs[0].observation.use_color,
     )

@@ -1,12 +1,16 @@
-"""The observations of one query sequence: what a user hands to :func:`jaxloc.sg2loc.localize`."""
+"""The observations of one query sequence: what a user hands to :func:`jaxloc.sg2loc.localize`;
+and the same sampled on a pass's ray grid, one :class:`Frame` per step (:func:`frames_on_grid`)."""
 
 from __future__ import annotations
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from jaxloc.camera import Camera
+from jaxloc._traced import concrete
+from jaxloc.camera import Camera, RayGrid
 
 
 def _as_finite(name: str, value, ndim: int, dtype=np.float32) -> np.ndarray:
@@ -135,3 +139,67 @@ class FrameSequence(eqx.Module):
     @property
     def patch_shape(self) -> tuple[int, int]:
         return self.patch_embeddings.shape[1], self.patch_embeddings.shape[2]
+
+
+class Frame(eqx.Module):
+    """One frame's observations, sampled on the pass's ray grid (R rays, P patches, d dims).
+
+    Attributes:
+        index: int32 frame number in the sequence.
+        motion: (4,) float32 ego-motion from the previous frame (zeros for the first frame).
+        patch_embeddings: (P, d) float32.
+        depth: (R,) float32 sensor depth at the rays' pixels (0 = invalid).
+        rgb: (h, w, 3) float32 colour at the rays' pixels, the ray image's shape.
+        tilt: (2,) float32 (pitch, roll).
+    """
+
+    index: Array
+    motion: Array
+    patch_embeddings: Array
+    depth: Array
+    rgb: Array
+    tilt: Array
+
+
+def grid_pixels(camera: Camera, grid: RayGrid) -> tuple[np.ndarray | Array, np.ndarray | Array]:
+    """The image pixel (row, column) of every ray of ``grid``: two (R,) int32 arrays, the nearest
+    pixel centre, clipped to the image. NumPy arrays for a concrete grid (host side), traced ones
+    for a traced grid."""
+    xp = jnp if isinstance(grid.uv, jax.core.Tracer) else np
+    uv = xp.asarray(grid.uv)
+    cols = xp.clip(xp.rint(uv[:, 0]).astype(xp.int32), 0, camera.width - 1)
+    rows = xp.clip(xp.rint(uv[:, 1]).astype(xp.int32), 0, camera.height - 1)
+    return rows, cols
+
+
+def frames_on_grid(sequence: FrameSequence, grid: RayGrid) -> Frame:
+    """All frames of a sequence sampled on a ray grid, stacked with a leading T axis (with NumPy
+    for a concrete sequence and grid, ``jax.numpy`` for traced ones)."""
+    num_frames = sequence.num_frames
+    rows_p, cols_p = sequence.patch_shape
+    if (rows_p, cols_p) != (grid.rows, grid.cols):
+        raise ValueError(
+            f"the sequence has a {rows_p}x{cols_p} patch grid but the ray grid uses "
+            f"{grid.rows}x{grid.cols} patches"
+        )
+    rows, cols = grid_pixels(sequence.camera, grid)
+    xp = np if concrete(*jax.tree.leaves((sequence, rows))) else jnp
+    h, w = grid.shape
+    if sequence.depth is not None:
+        depth = xp.asarray(sequence.depth)[:, rows, cols]
+    else:
+        depth = xp.zeros((num_frames, rows.shape[0]), xp.float32)
+    if sequence.rgb is not None:
+        rgb = xp.asarray(sequence.rgb)[:, rows, cols].reshape(num_frames, h, w, 3)
+    else:
+        rgb = xp.zeros((num_frames, h, w, 3), xp.float32)
+    motion = xp.concatenate([xp.zeros((1, 4), xp.float32), xp.asarray(sequence.ego_motion)])
+    embeddings = xp.asarray(sequence.patch_embeddings).reshape(num_frames, rows_p * cols_p, -1)
+    return Frame(  # device_put: jnp.asarray would compile a conversion program per host array
+        index=jax.device_put(np.arange(num_frames, dtype=np.int32)),
+        motion=jax.device_put(motion),
+        patch_embeddings=jax.device_put(embeddings),
+        depth=jax.device_put(depth),
+        rgb=jax.device_put(rgb),
+        tilt=jax.device_put(sequence.tilt),
+    )

@@ -280,7 +280,7 @@ def judge(
     observation: ObservationConfig,
     config: VerdictConfig,
     degenerate: Array,
-    num_rays: int,
+    num_rays: Array,
 ) -> Verdict:
     """The verdict of one frame from the weighted particles after the update.
 
@@ -292,7 +292,7 @@ def judge(
         observation: the observation model the scores came from (which terms, which variants).
         config: the thresholds.
         degenerate: bool, the update's weights fell back to uniform (never localized).
-        num_rays: rays per particle of the step's grid (static).
+        num_rays: int32 rays per particle of the step's grid.
     """
     spread = particle_spread(state)
     active = jnp.maximum(jnp.sum(state.active), 1).astype(jnp.float32)

@@ -43,12 +43,12 @@ from jax import Array
 from jaxloc.camera import Camera
 from jaxloc.scene import SceneGraph
 from jaxloc.sg2loc._convert import as_float32, as_int32
-from jaxloc.sg2loc._filter import Frame, Region, StepConfig, grid_pixels, step
+from jaxloc.sg2loc._filter import Region, StepConfig, step
 from jaxloc.sg2loc._localization import SG2LocConfig, step_config
 from jaxloc.sg2loc._particles import PAPER_HEIGHTS, ParticleState, init_region, inject_uniform
 from jaxloc.sg2loc._resampling import KLDConfig
 from jaxloc.sg2loc._scores import ObservationConfig, check_ssim_strides
-from jaxloc.sg2loc._sequence import FrameSequence
+from jaxloc.sg2loc._sequence import Frame, FrameSequence, grid_pixels
 from jaxloc.sg2loc._verdict import Verdict, VerdictConfig, default_verdict
 
 

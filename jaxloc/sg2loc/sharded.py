@@ -22,8 +22,9 @@ from jax import Array
 from jax.sharding import Mesh, PartitionSpec
 
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc._filter import Frame, StepConfig, StepInfo, run_pass, step
+from jaxloc.sg2loc._filter import StepConfig, StepInfo, run_pass, step
 from jaxloc.sg2loc._particles import ParticleState
+from jaxloc.sg2loc._sequence import Frame
 from jaxloc.sharding import AXIS, check_divisible, pin_split, place, split_sharding
 
 

@@ -13,7 +13,7 @@ from jax import Array
 from jaxloc.camera import Camera, RayGrid, stride_grid
 from jaxloc.geometry import compose_yaw, wrap_angle
 from jaxloc.scene import SceneGraph
-from jaxloc.sg2loc._filter import Frame, Region, frames_on_grid
+from jaxloc.sg2loc._filter import Region
 from jaxloc.sg2loc._rendering import render_batch
 from jaxloc.sg2loc._scores import (
     ObservationConfig,
@@ -21,7 +21,7 @@ from jaxloc.sg2loc._scores import (
     match_patches,
     particle_log_likelihood,
 )
-from jaxloc.sg2loc._sequence import FrameSequence
+from jaxloc.sg2loc._sequence import Frame, FrameSequence, frames_on_grid
 
 #: Half-width (metres) of the box around a window's first true pose of its local particles.
 LOCAL_HALF_WIDTH = 0.4
