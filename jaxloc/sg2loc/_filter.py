@@ -445,10 +445,24 @@ def run_pass(
     too); it changes the compiled program, not the results.
     """
 
-    def body(carry, frame):
-        carry, info = step(jax.random.fold_in(key, frame.index), carry, frame, scene, config)
+    def step_frame(key_t, carry, frame):
+        return step(key_t, carry, frame, scene, config)
+
+    return scan_frames(key, state, frames, frames.index, step_frame, progress, config.mesh)
+
+
+def scan_frames(key, state, frames, index, step_frame, progress, mesh) -> tuple:
+    """``lax.scan`` of ``step_frame(key_t, state, frame) -> (state, info)`` over ``frames``
+    (any pytree stacked on T), frame ``t`` with ``key_t = jax.random.fold_in(key, index[t])``
+    ((T,) int32 frame numbers), ticking the progress bar ``progress`` (None: none) after each;
+    ``mesh``: the particles' mesh, or None. The one frame loop of :func:`run_pass` and of
+    :func:`~jaxloc.sg2loc.localize`'s rounds."""
+
+    def body(carry, x):
+        i, frame = x
+        carry, info = step_frame(jax.random.fold_in(key, i), carry, frame)
         if progress is not None:
-            tick_after(progress, info.num_particles, config.mesh is not None)
+            tick_after(progress, info.num_particles, mesh is not None)
         return carry, info
 
-    return jax.lax.scan(body, state, frames)
+    return jax.lax.scan(body, state, (index, frames))

@@ -15,9 +15,8 @@ import jax.numpy as jnp
 from jax import Array
 
 from jaxloc.geometry import uncompose_yaw
-from jaxloc.sg2loc._filter import score_active, step_scored_by
+from jaxloc.sg2loc._filter import scan_frames, score_active, step_scored_by
 from jaxloc.sg2loc._particles import init_box, init_region
-from jaxloc.sg2loc._progress import tick_after
 from jaxloc.sharding import pin_split
 
 
@@ -90,17 +89,13 @@ def all_rounds(
         key_init, key_run = jax.random.split(key)
         update = eqx.tree_at(lambda u: u.num_rays, first.update, rays[branch])
 
-        def body(state, frame_on_grids):
-            frame = frame_on_grids[0]
-            key_step = jax.random.fold_in(key_run, frame.index)
+        def step_frame(key_t, state, frame_on_grids):
             score = scorer(branch, frame_on_grids)
-            state, info = step_scored_by(key_step, state, frame, scene, first, update, score)
-            if progress is not None:
-                tick_after(progress, info.num_particles, mesh is not None)
-            return state, info
+            return step_scored_by(key_t, state, frame_on_grids[0], scene, first, update, score)
 
         state = initial(round_index, key_init, centre)
-        _, infos = jax.lax.scan(body, state, frames)
+        index = frames[0].index
+        _, infos = scan_frames(key_run, state, frames, index, step_frame, progress, mesh)
         return carry_back(infos.mle[-1], ego_motion), (infos, centre)
 
     indices = jnp.arange(len(branches), dtype=jnp.int32)
