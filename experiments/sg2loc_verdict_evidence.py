@@ -426,6 +426,8 @@ def shadow_report(rounds: str, split: str) -> str:
             f"| {tau:.2f} | {j['flagged']} | {j['precision']:.3f} | {j['recall']:.3f} | "
             f"{j['false_accept']:.3f} |"
         )
+    if rounds == "stream":
+        lines += latched_table(keys, shadow, data)
     lines += [
         "",
         f"Per image width at tau = {CHOSEN_TAU} (chosen on the development split):",
@@ -442,6 +444,43 @@ def shadow_report(rounds: str, split: str) -> str:
             f"{j['recall']:.3f} | {j['false_accept']:.3f} |"
         )
     return "\n".join(lines)
+
+
+def latched_table(keys: list, shadow: dict, data: dict) -> list[str]:
+    """The streams' latched check: frame t is flagged when the depth-blind stream agreed with the
+    depth (>= tau_blind) at some frame up to t of its sequence (the place is confirmed) and the
+    stream with depth agrees at its own estimate at t (>= tau_own: the pose is precise)."""
+    blind = np.array([float(shadow[k]["inlier_rel"]) for k in keys])
+    own = np.array([float(shadow[k]["depth_inlier_rel"]) for k in keys])
+    order = sorted(range(len(keys)), key=lambda i: (keys[i][0], keys[i][1], int(keys[i][2])))
+
+    def confirmed(tau: float) -> np.ndarray:
+        seen, out = {}, np.zeros(len(keys), bool)
+        for i in order:
+            episode = keys[i][:2]
+            seen[episode] = seen.get(episode, False) or bool(blind[i] >= tau)
+            out[i] = seen[episode]
+        return out
+
+    lines = [
+        "",
+        "Latched: the depth-blind stream agreed (>= tau_blind) at some frame so far, and the "
+        "stream with depth agrees at its own estimate (>= tau_own):",
+        "",
+        "| tau_blind | tau_own | flagged | precision | recall of good | wrong-place frames "
+        "flagged |",
+        "|---|---|---|---|---|---|",
+    ]
+    every = np.ones(len(keys), bool)
+    for tau_blind in (0.5, 0.6, 0.7, 0.8):
+        latched = confirmed(tau_blind)
+        for tau_own in (0.7, 0.8, 0.9):
+            j = judge(data, latched & (own >= tau_own), every)
+            lines.append(
+                f"| {tau_blind:.1f} | {tau_own:.1f} | {j['flagged']} | {j['precision']:.3f} | "
+                f"{j['recall']:.3f} | {j['false_accept']:.3f} |"
+            )
+    return lines
 
 
 def main(argv=None) -> None:

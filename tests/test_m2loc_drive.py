@@ -1,8 +1,9 @@
 """``jaxloc.m2loc.localize_drive``: a drive in one call, against the building blocks it is made of
 (``localize_scan``, ``localize_window``, ``Tracker``) on simulated drives, its settings and errors,
 and against the command line: ``localize-lidar`` and the library give identical flags and poses on
-the fixture sequence of ``tests/test_cli_lidar_maps.py`` for single scans, accumulation, tracking
-and both, and on a drive simulated on a real HeLiPR map (skipped without ``../shared/data``)."""
+the fixture sequence of ``tests/test_cli_lidar_maps.py`` for single scans and for accumulation
+with tracking, and on a drive simulated on a real HeLiPR map (skipped without
+``../shared/data``)."""
 
 from __future__ import annotations
 
@@ -213,10 +214,12 @@ def sequence_and_map(tmp_path_factory):
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    ("accumulate", "track"), [(1, False), (3, False), (1, True), (3, True)],
-    ids=["single", "accumulate", "track", "both"],
-)  # fmt: skip
+    ("accumulate", "track"), [(1, False), (3, True)], ids=["single", "accumulate_and_track"]
+)
 def test_library_and_command_line_give_the_same_drive(sequence_and_map, accumulate, track):
+    """Single scans, and --accumulate with --track (the command passes both options to
+    ``localize_drive`` as they are; each mode alone is checked against its building blocks above,
+    and through the command line in tests/test_cli_lidar_maps.py)."""
     sequence, saved = sequence_and_map
     options = ["--accumulate", str(accumulate)] + (["--track"] if track else [])
     records = cli_json(["localize-lidar", saved, sequence, "--every", "3", "--json",

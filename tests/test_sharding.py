@@ -80,7 +80,7 @@ def test_localize_with_a_mesh_equals_one_device(measured):
 
 def test_every_engine_and_the_chunk_loop_run_sharded_like_one_device(measured):
     """Each installed engine, and chunks of 2 particles per device (a loop per shard), give the
-    single-device pass and localize on 4 devices: the same discrete results, close poses."""
+    single-device pass on 4 devices: the same discrete results, close poses."""
     expected = {"jax/None", "auto/2"} | {
         f"{e}/None" for e in ("embree", "warp") if importlib.util.find_spec(PACKAGES[e])
     }
@@ -88,12 +88,9 @@ def test_every_engine_and_the_chunk_loop_run_sharded_like_one_device(measured):
     for name, checks in measured["engines"].items():
         assert checks["state_devices"] == 4, name
         assert checks["pass_counts_equal"] and checks["pass_active_equal"], name
-        assert not checks["pass_nan"] and not checks["localize_nan"], name
+        assert not checks["pass_nan"], name
         assert checks["pass_mle_diff"] <= 1e-5 and checks["pass_poses_diff"] <= 1e-5, name
         assert checks["pass_log_weights_diff"] <= 1e-4, name
-        assert checks["batch_counts_equal"] and checks["batch_mle_diff"] <= 1e-5, name
-        assert checks["localize_counts_equal"], name
-        assert checks["localize_poses_diff"] <= 1e-5, name
 
 
 def test_each_device_calls_the_engine_on_its_own_shard(measured):
