@@ -19,7 +19,8 @@ and compared with the sequence's sensor depth, whether or not the filter used de
 ``--report`` prints, per group (filter with depth, without depth), each term's AUC of separating
 the frames within 0.25 m and 5 degrees in the right room (good) from the wrong place's frames
 (1: every good frame scores higher; a term where lower is better is negated first), and the
-10/50/90 % quantiles of both.
+10/50/90 % quantiles of both; then, for the filters without depth, the check "the depth agrees at
+the filter's own estimate on >= tau of its rays" per tau.
 
 ``--shadow`` localizes the sequences of the conditions whose filter scores depth again, without
 depth (a depth-blind *shadow* filter: ``--shadow-rounds all``, the condition's rounds; ``first``,
@@ -366,7 +367,28 @@ def report(split: str) -> str:
                 for m in (g, w)
             ]
             lines.append(f"| {label} | {name} | {score:.2f} | {quantiles[0]} | {quantiles[1]} |")
-    return "\n".join(lines)
+    return "\n".join(lines + own_estimate_table(data))
+
+
+def own_estimate_table(data: dict[str, np.ndarray]) -> list[str]:
+    """The check for a filter that does not score depth: flag a frame when the recording's depth
+    agrees at the filter's own estimate (``inlier_rel`` >= tau), per tau."""
+    blind = data["use_depth"] == 0
+    lines = [
+        "",
+        "Filters without depth, flagged when inlier_rel at their own estimate >= tau:",
+        "",
+        "| tau | flagged | precision (within 0.5 m / 10 deg) | recall of good | wrong-place frames "
+        "flagged |",
+        "|---|---|---|---|---|",
+    ]
+    for tau in (0.5, 0.6, 0.7, 0.8):
+        j = judge(data, data["inlier_rel"] >= tau, blind)
+        lines.append(
+            f"| {tau:.1f} | {j['flagged']} | {j['precision']:.3f} | {j['recall']:.3f} | "
+            f"{j['false_accept']:.3f} |"
+        )
+    return lines
 
 
 def shadow_report(rounds: str, split: str) -> str:
