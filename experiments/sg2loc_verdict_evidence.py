@@ -370,6 +370,12 @@ def report(split: str) -> str:
     return "\n".join(lines + own_estimate_table(data))
 
 
+def judged_cells(j: dict) -> str:
+    """The table cells of one :func:`judge` result: flagged, precision, recall of the good frames,
+    wrong-place frames flagged."""
+    return f"{j['flagged']} | {j['precision']:.3f} | {j['recall']:.3f} | {j['false_accept']:.3f} |"
+
+
 def own_estimate_table(data: dict[str, np.ndarray]) -> list[str]:
     """The check for a filter that does not score depth: flag a frame when the recording's depth
     agrees at the filter's own estimate (``inlier_rel`` >= tau), per tau."""
@@ -383,11 +389,7 @@ def own_estimate_table(data: dict[str, np.ndarray]) -> list[str]:
         "|---|---|---|---|---|",
     ]
     for tau in (0.5, 0.6, 0.7, 0.8):
-        j = judge(data, data["inlier_rel"] >= tau, blind)
-        lines.append(
-            f"| {tau:.1f} | {j['flagged']} | {j['precision']:.3f} | {j['recall']:.3f} | "
-            f"{j['false_accept']:.3f} |"
-        )
+        lines.append(f"| {tau:.1f} | {judged_cells(judge(data, data['inlier_rel'] >= tau, blind))}")
     return lines
 
 
@@ -443,11 +445,7 @@ def shadow_report(rounds: str, split: str) -> str:
     agreement, every = value(shadow, "inlier_rel"), np.ones(len(keys), bool)
     data = {"kind": np.array([k[1] for k in keys]), "pos": pos, "rot": rot}
     for tau in (0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95):
-        j = judge(data, agreement >= tau, every)
-        lines.append(
-            f"| {tau:.2f} | {j['flagged']} | {j['precision']:.3f} | {j['recall']:.3f} | "
-            f"{j['false_accept']:.3f} |"
-        )
+        lines.append(f"| {tau:.2f} | {judged_cells(judge(data, agreement >= tau, every))}")
     if rounds == "stream":
         lines += latched_table(keys, shadow, data)
     lines += [
@@ -498,10 +496,7 @@ def latched_table(keys: list, shadow: dict, data: dict) -> list[str]:
         latched = confirmed(tau_blind)
         for tau_own in (0.7, 0.8, 0.9):
             j = judge(data, latched & (own >= tau_own), every)
-            lines.append(
-                f"| {tau_blind:.1f} | {tau_own:.1f} | {j['flagged']} | {j['precision']:.3f} | "
-                f"{j['recall']:.3f} | {j['false_accept']:.3f} |"
-            )
+            lines.append(f"| {tau_blind:.1f} | {tau_own:.1f} | {judged_cells(j)}")
     return lines
 
 
