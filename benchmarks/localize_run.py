@@ -89,7 +89,10 @@ def main() -> None:
         f"strides 20,8,4; {args.repeats} rounds, medians (every round's value in brackets). "
         f"Load average before: {load_before}, after: {load_after}.\n"
     )
-    print("| checkout | first call (s) | compiled call (s) | per frame, all rounds (s) | peak RSS (MiB) |")
+    print(
+        "| checkout | first call (s) | compiled call (s) | per frame, all rounds (s) "
+        "| peak RSS (MiB) |"
+    )
     print("|---|---|---|---|---|")
     for tree, results in rows.items():
         label = "this one" if tree == ROOT else str(tree)

@@ -14,8 +14,15 @@ until the estimate is ready:
 The first frame is reported apart (all 2500 particles are rendered; KLD-sampling then keeps
 ~500); compile time is separate. Peak RSS is the process's.
 
+``--check`` times, beside ``update``, what the streaming check of
+``experiments/sg2loc_stream_refine.py`` adds per frame: a depth-blind stream's ``update``, the
+refinement with depth of both streams' estimates (:func:`jaxloc.sg2loc.refine.refine_frame`, depth
+pixels every ``max(4, width // 96)``-th pixel) and the depth agreement at the refined pose
+(:func:`jaxloc.sg2loc.depth_agreement`, timed over the whole sequence and divided by its frames).
+
     python benchmarks/online.py                        # 320x180 and 960x540, 10 frames
     python benchmarks/online.py --sizes 960x540 --frames 20
+    python benchmarks/online.py --check
 """
 
 from __future__ import annotations
@@ -99,11 +106,62 @@ def time_size(width: int, height: int, frames: int, seed: int) -> dict:
     }
 
 
+def time_check(width: int, height: int, frames: int, seed: int) -> dict:
+    """Median seconds per frame (after the first) of ``update`` and of what the check adds."""
+    import jax.numpy as jnp
+
+    from jaxloc.geometry import yaw_pose_to_se3
+    from jaxloc.sg2loc import depth_agreement
+    from jaxloc.sg2loc.refine import RefineConfig, refine_frame
+
+    episode = make_episode(seed, frames, EpisodeConfig(sensor=SensorConfig(width, height)))
+    seq, scene = episode.sequence, episode.scene
+    streams = {
+        name: online.init(jax.random.key(seed), scene, seq.camera) for name in ("depth", "blind")
+    }
+    refine_config = RefineConfig(depth_stride=max(4, width // 96))
+    parts = {"update": [], "blind update": [], "two refinements": []}
+    acted = []
+    for t in range(frames):
+        estimates = {}
+        for name, part in (("depth", "update"), ("blind", "blind update")):
+            depth = seq.depth[t] if name == "depth" else None
+            start = time.perf_counter()
+            streams[name], estimates[name] = online.update(
+                streams[name],
+                seq.patch_embeddings[t],
+                motion_of(seq, t),
+                depth,
+                seq.rgb[t],
+                seq.tilt[t],
+            )
+            jax.block_until_ready(estimates[name])
+            parts[part].append(time.perf_counter() - start)
+        start = time.perf_counter()
+        for name in ("depth", "blind"):
+            T_init = yaw_pose_to_se3(estimates[name].pose, jnp.asarray(seq.tilt[t]))
+            result = refine_frame(scene, seq.camera, T_init, refine_config, depth=seq.depth[t])
+            jax.block_until_ready(result)
+            if name == "depth":
+                acted.append(np.where(result.ok, result.yaw_pose, estimates[name].pose))
+        parts["two refinements"].append(time.perf_counter() - start)
+    poses = jnp.asarray(np.stack(acted))
+    jax.block_until_ready(depth_agreement(scene, seq, poses, 20))  # compiles
+    start = time.perf_counter()
+    jax.block_until_ready(depth_agreement(scene, seq, poses, 20))
+    agreement = (time.perf_counter() - start) / frames
+    out = {part: float(np.median(times[1:])) for part, times in parts.items()}
+    out["agreement"] = agreement
+    out["checked"] = sum(out.values())
+    return {"size": f"{width}x{height}", **out}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="320x180,960x540", help="comma list of WxH")
     parser.add_argument("--frames", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--check", action="store_true", help="also time the streaming check")
     args = parser.parse_args(argv)
     device = jax.devices()[0]
     load = os.getloadavg()[0]
@@ -130,6 +188,27 @@ def main(argv=None) -> None:
             f"| {r['size']} | {r['rays']} | {r['compile']:.1f} | {r['update_first']:.3f} | "
             f"{r['update_rest']:.3f} | {r['step_first']:.3f} | {r['step_rest']:.3f} | "
             f"{r['update_rest'] / r['step_rest']:.2f}x | {r['localized']} / {r['frames']} |"
+        )
+    if not args.check:
+        return
+    checks = [
+        time_check(*map(int, size.split("x")), args.frames, args.seed)
+        for size in args.sizes.split(",")
+    ]
+    print(
+        "\nThe streaming check per frame (median of the frames after the first, seconds; load "
+        f"average {os.getloadavg()[0]:.1f} at the end):\n"
+    )
+    print(
+        "| image | update | depth-blind update | refinement of both estimates | depth agreement "
+        "| checked frame | checked / update |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for r in checks:
+        print(
+            f"| {r['size']} | {r['update']:.3f} | {r['blind update']:.3f} | "
+            f"{r['two refinements']:.3f} | {r['agreement']:.3f} | {r['checked']:.3f} | "
+            f"{r['checked'] / r['update']:.1f}x |"
         )
 
 
