@@ -44,13 +44,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sg2loc_verdict import judge, parse_seeds  # noqa: E402
-from sg2loc_verdict_conditions import draw_condition, sg2loc_config  # noqa: E402
+from sg2loc_verdict_conditions import sg2loc_config  # noqa: E402
 from sg2loc_verdict_evidence import (  # noqa: E402
     SPLITS,
     append_rows,
-    done_runs,
     episode_of,
+    frame_row,
     judged_cells,
+    pending_sequences,
+    pose_errors,
 )
 
 OUT = Path(__file__).resolve().parents[1] / "experiments" / "results" / "sg2loc_stream_refine"
@@ -121,20 +123,10 @@ def stream_and_refine(seed: int, kind: str, condition: dict, shared) -> list[dic
     }
     gap_pos, gap_yaw = yaw_pose_errors(estimates["blind"], acted)
     twin_pos, twin_yaw = yaw_pose_errors(blind_acted, acted)
-    if episode.in_map:
-        (pos, rot), (acted_pos, acted_rot) = (
-            yaw_pose_errors(p, episode.poses_gt) for p in (poses, acted)
-        )
-    else:
-        pos = rot = acted_pos = acted_rot = np.full(len(poses), np.nan)
+    (pos, rot), (acted_pos, acted_rot) = (pose_errors(episode, p) for p in (poses, acted))
     return [
         {
-            "seed": seed,
-            "kind": kind,
-            "frame": t,
-            "width": condition["width"],
-            "pos": round(float(pos[t]), 4),
-            "rot": round(float(rot[t]), 3),
+            **frame_row(seed, kind, t, condition, pos, rot),
             "acted_pos": round(float(acted_pos[t]), 4),
             "acted_rot": round(float(acted_rot[t]), 3),
             "status": int(results[t].status),
@@ -154,32 +146,17 @@ def stream_and_refine(seed: int, kind: str, condition: dict, shared) -> list[dic
 
 
 def run(seeds, split: str) -> None:
-    import jax
-    from sg2loc_tables import SharedCapacity
-
-    from jaxloc import enable_compilation_cache
-
-    enable_compilation_cache()
-    OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / f"frames_{split}.csv"
-    done, shared = done_runs(path), SharedCapacity()
-    for seed in seeds:
-        condition = draw_condition(seed, *SPLITS[split])
-        if not condition["use_depth"]:
-            continue
-        jax.clear_caches()  # every condition compiles programs of its own shapes
-        for kind in ("right", "wrong"):
-            if (seed, kind) in done:
-                continue
-            rows = stream_and_refine(seed, kind, condition, shared)
-            append_rows(path, FIELDS, rows)
-            r = rows[0]
-            print(
-                f"{seed} {kind} {condition['width']}px: stream {r['stream_seconds']:.0f} s, "
-                f"blind {r['blind_seconds']:.0f} s, refinements {r['stream_refine_seconds']:.0f} "
-                f"and {r['blind_refine_seconds']:.0f} s",
-                flush=True,
-            )
+    for seed, kind, condition, shared in pending_sequences(seeds, split, path, depth_only=True):
+        rows = stream_and_refine(seed, kind, condition, shared)
+        append_rows(path, FIELDS, rows)
+        r = rows[0]
+        print(
+            f"{seed} {kind} {condition['width']}px: stream {r['stream_seconds']:.0f} s, "
+            f"blind {r['blind_seconds']:.0f} s, refinements {r['stream_refine_seconds']:.0f} "
+            f"and {r['blind_refine_seconds']:.0f} s",
+            flush=True,
+        )
 
 
 def load(split: str) -> dict[str, np.ndarray]:

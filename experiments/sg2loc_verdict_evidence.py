@@ -129,6 +129,28 @@ def episode_of(seed: int, kind: str, condition: dict):
     return make_lookalike_episode(seed, seed + PLACE_OFFSET, 10, generator)
 
 
+def pose_errors(episode, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(T,) position (m) and rotation (deg) errors of ``poses`` (T, 4) in ``episode``; NaN in a
+    wrong place (no ground truth there)."""
+    from jaxloc.metrics import yaw_pose_errors
+
+    if not episode.in_map:
+        return np.full(len(poses), np.nan), np.full(len(poses), np.nan)
+    return yaw_pose_errors(np.asarray(poses), episode.poses_gt)
+
+
+def frame_row(seed: int, kind: str, t: int, condition: dict, pos, rot) -> dict:
+    """The leading columns of frame ``t``'s row: which sequence and frame, its errors."""
+    return {
+        "seed": seed,
+        "kind": kind,
+        "frame": t,
+        "width": condition["width"],
+        "pos": round(float(pos[t]), 4),
+        "rot": round(float(rot[t]), 3),
+    }
+
+
 def localize_and_check(seed: int, kind: str, condition: dict, shared) -> dict:
     """Localize the ``kind`` sequence of ``condition`` offline and render each frame's estimate on
     the final round's grid: ``{"pos", "rot"}`` (T,) errors (NaN in a wrong place), ``"verdict"``
@@ -137,7 +159,6 @@ def localize_and_check(seed: int, kind: str, condition: dict, shared) -> dict:
     import jax.numpy as jnp
 
     from jaxloc import stride_grid
-    from jaxloc.metrics import yaw_pose_errors
     from jaxloc.sg2loc import localize
     from jaxloc.sg2loc._rendering import render
     from jaxloc.sg2loc._sequence import frames_on_grid
@@ -152,10 +173,7 @@ def localize_and_check(seed: int, kind: str, condition: dict, shared) -> dict:
     frames = frames_on_grid(sequence, grid)
     draw = functools.partial(render, scene, camera=sequence.camera, grid=grid, differentiable=False)
     views = jax.jit(jax.vmap(lambda p, t: draw(pose=p, tilt=t)))(jnp.asarray(poses), frames.tilt)
-    if episode.in_map:
-        pos, rot = yaw_pose_errors(poses, episode.poses_gt)
-    else:
-        pos = rot = np.full(len(poses), np.nan)
+    pos, rot = pose_errors(episode, poses)
     rendered, sensor = np.asarray(views.depth), np.asarray(frames.depth)
     return {
         "pos": pos,
@@ -182,49 +200,60 @@ def done_runs(path: Path) -> set[tuple[int, str]]:
         return {(int(r["seed"]), r["kind"]) for r in csv.DictReader(f)}
 
 
-def run(seeds, split: str) -> None:
+def pending_sequences(seeds, split: str, path: Path, depth_only: bool = False):
+    """Yield ``(seed, kind, condition, shared)`` for every sequence of ``seeds`` (the ``right`` and
+    ``wrong`` one of each condition; with ``depth_only`` only the conditions whose filter scores
+    depth) that ``path`` does not hold yet. ``shared`` is the maps' :class:`SharedCapacity`; the
+    compiled programs are dropped between conditions (each compiles programs of its own
+    shapes)."""
     import jax
     from sg2loc_tables import SharedCapacity
 
     from jaxloc import enable_compilation_cache
 
     enable_compilation_cache()
-    OUT.mkdir(parents=True, exist_ok=True)
-    path = OUT / f"frames_{split}.csv"
+    path.parent.mkdir(parents=True, exist_ok=True)
     done, shared = done_runs(path), SharedCapacity()
     for seed in seeds:
-        jax.clear_caches()  # every condition compiles programs of its own shapes
         condition = draw_condition(seed, *SPLITS[split])
+        if depth_only and not condition["use_depth"]:
+            continue
+        jax.clear_caches()
         for kind in ("right", "wrong"):
-            if (seed, kind) in done:
-                continue
-            out = localize_and_check(seed, kind, condition, shared)
-            verdict, rows = out["verdict"], []
-            for t, agreement in enumerate(out["depth"]):
-                terms = {
-                    "semantic_fraction": verdict.semantic_fraction[t],
-                    "mass": verdict.mass[t],
-                    "depth_deficit": verdict.depth_deficit[t],
-                    "ess": verdict.ess_fraction[t],
-                    "spread_z": verdict.spread[t, 2],
-                    **agreement,
+            if (seed, kind) not in done:
+                yield seed, kind, condition, shared
+
+
+def run(seeds, split: str) -> None:
+    path = OUT / f"frames_{split}.csv"
+    for seed, kind, condition, shared in pending_sequences(seeds, split, path):
+        out = localize_and_check(seed, kind, condition, shared)
+        verdict, rows = out["verdict"], []
+        for t, agreement in enumerate(out["depth"]):
+            terms = {
+                "semantic_fraction": verdict.semantic_fraction[t],
+                "mass": verdict.mass[t],
+                "depth_deficit": verdict.depth_deficit[t],
+                "ess": verdict.ess_fraction[t],
+                "spread_z": verdict.spread[t, 2],
+                **agreement,
+            }
+            rows.append(
+                {
+                    "seed": seed,
+                    "kind": kind,
+                    "frame": t,
+                    "pos": round(float(out["pos"][t]), 4),
+                    "rot": round(float(out["rot"][t]), 3),
+                    "use_depth": condition["use_depth"],
+                    "width": condition["width"],
+                    "sigma": condition["sigma"],
+                    "seconds": round(out["seconds"], 2),
+                    **{k: round(float(v), 4) for k, v in terms.items()},
                 }
-                rows.append(
-                    {
-                        "seed": seed,
-                        "kind": kind,
-                        "frame": t,
-                        "pos": round(float(out["pos"][t]), 4),
-                        "rot": round(float(out["rot"][t]), 3),
-                        "use_depth": condition["use_depth"],
-                        "width": condition["width"],
-                        "sigma": condition["sigma"],
-                        "seconds": round(out["seconds"], 2),
-                        **{k: round(float(v), 4) for k, v in terms.items()},
-                    }
-                )
-            append_rows(path, FIELDS, rows)
-            print(f"seed {seed} {kind} {condition['width']}px: {out['seconds']:.0f} s", flush=True)
+            )
+        append_rows(path, FIELDS, rows)
+        print(f"seed {seed} {kind} {condition['width']}px: {out['seconds']:.0f} s", flush=True)
 
 
 #: The shadow filter's variants: the condition's every round, only its first round's stride,
@@ -242,7 +271,6 @@ def stream_and_check(seed: int, kind: str, condition: dict, shared) -> list[dict
     streams' estimates (``depth_`` the stream with depth)."""
     import jax
 
-    from jaxloc.metrics import yaw_pose_errors
     from jaxloc.sg2loc import AgreementConfig, depth_agreement, online
 
     episode = episode_of(seed, kind, condition)
@@ -256,19 +284,11 @@ def stream_and_check(seed: int, kind: str, condition: dict, shared) -> list[dict
             shares[name + suffix] = np.asarray(share)
         if name == "depth_":  # the estimate a user acts on
             poses = np.asarray(stream.pose)
-    if episode.in_map:
-        pos, rot = yaw_pose_errors(poses, episode.poses_gt)
-    else:
-        pos = rot = np.full(len(poses), np.nan)
+    pos, rot = pose_errors(episode, poses)
     seconds = round(time.perf_counter() - start, 2)
     return [
         {
-            "seed": seed,
-            "kind": kind,
-            "frame": t,
-            "width": condition["width"],
-            "pos": round(float(pos[t]), 4),
-            "rot": round(float(rot[t]), 3),
+            **frame_row(seed, kind, t, condition, pos, rot),
             "seconds": seconds,
             **{k: round(float(v[t]), 4) for k, v in shares.items()},
         }
@@ -284,48 +304,32 @@ def run_shadow(seeds, rounds: str, split: str) -> None:
     """For the conditions whose filter scores depth: the same sequences localized without depth
     (a depth-blind shadow filter, one of :data:`SHADOWS`), its estimates' depth agreement on its
     final grid in :func:`shadow_file`."""
-    import jax
-    from sg2loc_tables import SharedCapacity
-
-    from jaxloc import enable_compilation_cache
-
-    enable_compilation_cache()
     path = shadow_file(rounds, split)
-    done, shared = done_runs(path), SharedCapacity()
-    for seed in seeds:
-        condition = draw_condition(seed, *SPLITS[split])
-        if not condition["use_depth"]:
-            continue
-        jax.clear_caches()
+    for seed, kind, condition, shared in pending_sequences(seeds, split, path, depth_only=True):
         blind = dict(condition, use_depth=0)
         if rounds == "first":
             blind["strides"] = str(condition["strides"]).split("/")[0]
         elif rounds == "quarter":
             blind["capacity"] = condition["capacity"] // 4
-        for kind in ("right", "wrong"):
-            if (seed, kind) in done:
-                continue
-            if rounds == "stream":
-                append_rows(path, STREAM_FIELDS, stream_and_check(seed, kind, condition, shared))
-                print(f"stream {seed} {kind} {condition['width']}px", flush=True)
-                continue
-            out = localize_and_check(seed, kind, blind, shared)
-            rows = [
-                {
-                    "seed": seed,
-                    "kind": kind,
-                    "frame": t,
-                    "pos": round(float(out["pos"][t]), 4),
-                    "rot": round(float(out["rot"][t]), 3),
-                    "seconds": round(out["seconds"], 2),
-                    **{k: round(float(v), 4) for k, v in agreement.items()},
-                }
-                for t, agreement in enumerate(out["depth"])
-            ]
-            append_rows(path, SHADOW_FIELDS, rows)
-            print(
-                f"shadow {seed} {kind} {condition['width']}px: {out['seconds']:.0f} s", flush=True
-            )
+        if rounds == "stream":
+            append_rows(path, STREAM_FIELDS, stream_and_check(seed, kind, condition, shared))
+            print(f"stream {seed} {kind} {condition['width']}px", flush=True)
+            continue
+        out = localize_and_check(seed, kind, blind, shared)
+        rows = [
+            {
+                "seed": seed,
+                "kind": kind,
+                "frame": t,
+                "pos": round(float(out["pos"][t]), 4),
+                "rot": round(float(out["rot"][t]), 3),
+                "seconds": round(out["seconds"], 2),
+                **{k: round(float(v), 4) for k, v in agreement.items()},
+            }
+            for t, agreement in enumerate(out["depth"])
+        ]
+        append_rows(path, SHADOW_FIELDS, rows)
+        print(f"shadow {seed} {kind} {condition['width']}px: {out['seconds']:.0f} s", flush=True)
 
 
 def auc(positive: np.ndarray, negative: np.ndarray) -> float:
