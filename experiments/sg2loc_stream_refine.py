@@ -51,6 +51,7 @@ from sg2loc_verdict_evidence import (  # noqa: E402
     episode_of,
     frame_row,
     judged_cells,
+    latched,
     pending_sequences,
     pose_errors,
 )
@@ -161,18 +162,8 @@ def run(seeds, split: str) -> None:
 
 def load(split: str) -> dict[str, np.ndarray]:
     with (OUT / f"frames_{split}.csv").open() as f:
-        rows = sorted(csv.DictReader(f), key=lambda r: (r["seed"], r["kind"], int(r["frame"])))
+        rows = list(csv.DictReader(f))
     return {k: np.array([r[k] for r in rows], object if k == "kind" else float) for k in FIELDS}
-
-
-def latched(data: dict[str, np.ndarray], event: np.ndarray) -> np.ndarray:
-    """Per frame: ``event`` happened at this or an earlier frame of its sequence (rows sorted by
-    seed, kind, frame)."""
-    out, seen, episode = np.zeros(len(event), bool), False, None
-    for i, key in enumerate(zip(data["seed"], data["kind"], strict=True)):
-        seen = (seen and key == episode) or bool(event[i])
-        out[i], episode = seen, key
-    return out
 
 
 def confirmations(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -180,16 +171,18 @@ def confirmations(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     (>= tau_blind) at some frame so far; its estimate within ``g`` metres and 15 degrees of the
     acted-on pose, at this frame or at some frame so far."""
     near = lambda g: (data["gap_pos"] < g) & (data["gap_yaw"] < 15.0)  # noqa: E731
+    episodes = list(zip(data["seed"], data["kind"], strict=True))
+    so_far = lambda event: latched(episodes, data["frame"], event)  # noqa: E731
     out = {"none": np.ones(len(data["seed"]), bool)}
     for tau in (0.4, 0.5, 0.6, 0.7):
-        out[f"blind agreed >= {tau:.1f} so far"] = latched(data, data["blind_rel"] >= tau)
+        out[f"blind agreed >= {tau:.1f} so far"] = so_far(data["blind_rel"] >= tau)
     for g in (0.5, 1.0):
         out[f"blind within {g:.1f} m now"] = near(g)
-        out[f"blind within {g:.1f} m so far"] = latched(data, near(g))
+        out[f"blind within {g:.1f} m so far"] = so_far(near(g))
     for g in (0.1, 0.25):
         twin = (data["blind_status"] == 0) & (data["twin_pos"] < g) & (data["twin_yaw"] < 5.0)
         out[f"refined blind within {g:.2f} m now"] = twin
-        out[f"refined blind within {g:.2f} m so far"] = latched(data, twin)
+        out[f"refined blind within {g:.2f} m so far"] = so_far(twin)
     return out
 
 

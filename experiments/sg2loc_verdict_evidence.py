@@ -470,21 +470,24 @@ def shadow_report(rounds: str, split: str) -> str:
     return "\n".join(lines)
 
 
+def latched(episodes: list, frames, event: np.ndarray) -> np.ndarray:
+    """Per row: ``event`` is True at this or an earlier frame of the row's sequence (``episodes``
+    names each row's sequence, ``frames`` its frame index; rows in any order)."""
+    out, seen = np.zeros(len(event), bool), {}
+    for i in sorted(range(len(event)), key=lambda i: frames[i]):
+        seen[episodes[i]] = seen.get(episodes[i], False) or bool(event[i])
+        out[i] = seen[episodes[i]]
+    return out
+
+
 def latched_table(keys: list, shadow: dict, data: dict) -> list[str]:
     """The streams' latched check: frame t is flagged when the depth-blind stream agreed with the
     depth (>= tau_blind) at some frame up to t of its sequence (the place is confirmed) and the
     stream with depth agrees at its own estimate at t (>= tau_own: the pose is precise)."""
     blind = np.array([float(shadow[k]["inlier_rel"]) for k in keys])
     own = np.array([float(shadow[k]["depth_inlier_rel"]) for k in keys])
-    order = sorted(range(len(keys)), key=lambda i: (keys[i][0], keys[i][1], int(keys[i][2])))
-
-    def confirmed(tau: float) -> np.ndarray:
-        seen, out = {}, np.zeros(len(keys), bool)
-        for i in order:
-            episode = keys[i][:2]
-            seen[episode] = seen.get(episode, False) or bool(blind[i] >= tau)
-            out[i] = seen[episode]
-        return out
+    episodes, frames = [k[:2] for k in keys], [int(k[2]) for k in keys]
+    confirmed = lambda tau: latched(episodes, frames, blind >= tau)  # noqa: E731
 
     lines = [
         "",
@@ -497,9 +500,9 @@ def latched_table(keys: list, shadow: dict, data: dict) -> list[str]:
     ]
     every = np.ones(len(keys), bool)
     for tau_blind in (0.5, 0.6, 0.7, 0.8):
-        latched = confirmed(tau_blind)
+        place = confirmed(tau_blind)
         for tau_own in (0.7, 0.8, 0.9):
-            j = judge(data, latched & (own >= tau_own), every)
+            j = judge(data, place & (own >= tau_own), every)
             lines.append(f"| {tau_blind:.1f} | {tau_own:.1f} | {judged_cells(j)}")
     return lines
 
