@@ -17,7 +17,8 @@ The first frame is reported apart (all 2500 particles are rendered; KLD-sampling
 ``--check`` times, beside ``update``, what the streaming check of
 ``experiments/sg2loc_stream_refine.py`` adds per frame: a depth-blind stream's ``update``, the
 refinement with depth of both streams' estimates (:func:`jaxloc.sg2loc.refine.refine_frame`, depth
-pixels every ``max(4, width // 96)``-th pixel) and the depth agreement at the refined pose
+pixels every ``max(4, width // 96)``-th pixel; ``--check-budgets``: its rounds and steps, by
+default RefineConfig's 16 x 20 beside 4 x 10) and the depth agreement at the refined pose
 (:func:`jaxloc.sg2loc.depth_agreement`, timed over the whole sequence and divided by its frames).
 
     python benchmarks/online.py                        # 320x180 and 960x540, 10 frames
@@ -106,8 +107,9 @@ def time_size(width: int, height: int, frames: int, seed: int) -> dict:
     }
 
 
-def time_check(width: int, height: int, frames: int, seed: int) -> dict:
-    """Median seconds per frame (after the first) of ``update`` and of what the check adds."""
+def time_check(width: int, height: int, frames: int, seed: int, budget: str) -> dict:
+    """Median seconds per frame (after the first) of ``update`` and of what the check adds, with
+    the refinement's ``budget`` ("ROUNDSxSTEPS": ``rounds`` and ``max_steps``)."""
     import jax.numpy as jnp
 
     from jaxloc.geometry import yaw_pose_to_se3
@@ -119,7 +121,8 @@ def time_check(width: int, height: int, frames: int, seed: int) -> dict:
     streams = {
         name: online.init(jax.random.key(seed), scene, seq.camera) for name in ("depth", "blind")
     }
-    refine_config = RefineConfig(depth_stride=max(4, width // 96))
+    rounds, steps = (int(n) for n in budget.split("x"))
+    refine_config = RefineConfig(depth_stride=max(4, width // 96), rounds=rounds, max_steps=steps)
     parts = {"update": [], "blind update": [], "two refinements": []}
     acted = []
     for t in range(frames):
@@ -153,7 +156,7 @@ def time_check(width: int, height: int, frames: int, seed: int) -> dict:
     out = {part: float(np.median(times[1:])) for part, times in parts.items()}
     out["agreement"] = agreement
     out["checked"] = sum(out.values())
-    return {"size": f"{width}x{height}", **out}
+    return {"size": f"{width}x{height}", "budget": budget, **out}
 
 
 def main(argv=None) -> None:
@@ -162,6 +165,11 @@ def main(argv=None) -> None:
     parser.add_argument("--frames", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--check", action="store_true", help="also time the streaming check")
+    parser.add_argument(
+        "--check-budgets",
+        default="16x20,4x10",
+        help="the check's refinement budgets, ROUNDSxSTEPS (16x20: RefineConfig's default)",
+    )
     args = parser.parse_args(argv)
     device = jax.devices()[0]
     load = os.getloadavg()[0]
@@ -192,21 +200,22 @@ def main(argv=None) -> None:
     if not args.check:
         return
     checks = [
-        time_check(*map(int, size.split("x")), args.frames, args.seed)
+        time_check(*map(int, size.split("x")), args.frames, args.seed, budget)
         for size in args.sizes.split(",")
+        for budget in args.check_budgets.split(",")
     ]
     print(
         "\nThe streaming check per frame (median of the frames after the first, seconds; load "
         f"average {os.getloadavg()[0]:.1f} at the end):\n"
     )
     print(
-        "| image | update | depth-blind update | refinement of both estimates | depth agreement "
-        "| checked frame | checked / update |"
+        "| image | refinement rounds x steps | update | depth-blind update | refinement of both "
+        "estimates | depth agreement | checked frame | checked / update |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     for r in checks:
         print(
-            f"| {r['size']} | {r['update']:.3f} | {r['blind update']:.3f} | "
+            f"| {r['size']} | {r['budget']} | {r['update']:.3f} | {r['blind update']:.3f} | "
             f"{r['two refinements']:.3f} | {r['agreement']:.3f} | {r['checked']:.3f} | "
             f"{r['checked'] / r['update']:.1f}x |"
         )

@@ -23,6 +23,9 @@ tau_pose)" on the acted-on poses: flagged frames, precision (within 0.5 m and
 10 degrees), recall of the frames within 0.25 m and 5 degrees, wrong-place frames flagged; per
 threshold pair, and per image width at :data:`CHOSEN`.
 
+``--budget ROUNDSxSTEPS`` sets the refinement's ``rounds`` and ``max_steps`` (default 16x20,
+``RefineConfig``'s; another budget logs to ``frames_SPLIT_budgetROUNDSxSTEPS.csv``).
+
     JAX_PLATFORMS=cpu python experiments/sg2loc_stream_refine.py --run --seeds 5100-5123
     python experiments/sg2loc_stream_refine.py --report > \\
         experiments/results/sg2loc_stream_refine/report_dev.txt
@@ -64,6 +67,8 @@ FIELDS += ["stream_seconds", "blind_seconds", "stream_refine_seconds", "blind_re
 #: (confirmation, tau_pose) chosen on the development split: the pair of the report's grid with
 #: the most recall whose precision is >= 0.95 and wrong-place share <= 0.05 there.
 CHOSEN = ("refined blind within 0.25 m now", 0.8)
+#: The refinement's (rounds, max_steps): :class:`~jaxloc.sg2loc.refine.RefineConfig`'s defaults.
+DEFAULT_BUDGET = (16, 20)
 
 
 def refine_stride(width: int) -> int:
@@ -92,8 +97,11 @@ def refine_estimates(scene, sequence, poses: np.ndarray, config) -> tuple[np.nda
     return acted, results
 
 
-def stream_and_refine(seed: int, kind: str, condition: dict, shared) -> list[dict]:
-    """The rows of one sequence (see the module docstring)."""
+def stream_and_refine(
+    seed: int, kind: str, condition: dict, shared, budget: tuple[int, int]
+) -> list[dict]:
+    """The rows of one sequence (see the module docstring); ``budget``: the refinement's
+    ``(rounds, max_steps)``."""
     import jax
 
     from jaxloc.metrics import yaw_pose_errors
@@ -110,7 +118,10 @@ def stream_and_refine(seed: int, kind: str, condition: dict, shared) -> list[dic
         stream = online.filter_sequence(jax.random.key(seed), scene, sequence, sg2loc_config(c))
         estimates[name] = np.asarray(stream.pose)
         seconds[name] = time.perf_counter() - start
-    refine_config = RefineConfig(depth_stride=refine_stride(condition["width"]))
+    rounds, steps = budget
+    refine_config = RefineConfig(
+        depth_stride=refine_stride(condition["width"]), rounds=rounds, max_steps=steps
+    )
     refined = {}
     for name in ("stream", "blind"):
         start = time.perf_counter()
@@ -146,10 +157,16 @@ def stream_and_refine(seed: int, kind: str, condition: dict, shared) -> list[dic
     ]
 
 
-def run(seeds, split: str) -> None:
-    path = OUT / f"frames_{split}.csv"
+def frames_file(split: str, budget: tuple[int, int]) -> Path:
+    """The log of ``split`` with the refinement's ``(rounds, max_steps)`` budget."""
+    suffix = "" if budget == DEFAULT_BUDGET else f"_budget{budget[0]}x{budget[1]}"
+    return OUT / f"frames_{split}{suffix}.csv"
+
+
+def run(seeds, split: str, budget: tuple[int, int]) -> None:
+    path = frames_file(split, budget)
     for seed, kind, condition, shared in pending_sequences(seeds, split, path, depth_only=True):
-        rows = stream_and_refine(seed, kind, condition, shared)
+        rows = stream_and_refine(seed, kind, condition, shared, budget)
         append_rows(path, FIELDS, rows)
         r = rows[0]
         print(
@@ -160,8 +177,8 @@ def run(seeds, split: str) -> None:
         )
 
 
-def load(split: str) -> dict[str, np.ndarray]:
-    with (OUT / f"frames_{split}.csv").open() as f:
+def load(split: str, budget: tuple[int, int] = DEFAULT_BUDGET) -> dict[str, np.ndarray]:
+    with frames_file(split, budget).open() as f:
         rows = list(csv.DictReader(f))
     return {k: np.array([r[k] for r in rows], object if k == "kind" else float) for k in FIELDS}
 
@@ -186,8 +203,8 @@ def confirmations(data: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     return out
 
 
-def report(split: str) -> str:
-    data = load(split)
+def report(split: str, budget: tuple[int, int]) -> str:
+    data = load(split, budget)
     acted = dict(data, pos=data["acted_pos"], rot=data["acted_rot"])
     right, ok = data["kind"] == "right", data["status"] == 0
     every = np.ones(len(right), bool)
@@ -205,6 +222,7 @@ def report(split: str) -> str:
         for k in ("stream", "blind", "stream_refine", "blind_refine")
     }
     lines = [
+        f"Refinement budget: {budget[0]} rounds of {budget[1]} steps. "
         f"{len(seeds)} conditions whose filter scores depth ({', '.join(map(str, seeds))}), "
         f"{len(right)} frames, {(~right).sum()} in look-alike wrong places. Right-room frames "
         f"within 0.25 m / 5 deg (0.5 m / 10 deg): stream {stream_counts[0]} ({stream_counts[1]}), "
@@ -254,11 +272,15 @@ def main(argv=None) -> None:
     parser.add_argument("--split", choices=sorted(SPLITS), default="dev")
     parser.add_argument("--seeds", type=parse_seeds, default=None, help="e.g. 5100-5123")
     parser.add_argument("--report", action="store_true", help="the check's tables")
+    parser.add_argument(
+        "--budget", default="16x20", help="the refinement's ROUNDSxSTEPS (default 16x20)"
+    )
     args = parser.parse_args(argv)
+    budget = tuple(int(n) for n in args.budget.split("x"))
     if args.run:
-        run(args.seeds, args.split)
+        run(args.seeds, args.split, budget)
     if args.report:
-        print(report(args.split))
+        print(report(args.split, budget))
 
 
 if __name__ == "__main__":
