@@ -258,11 +258,8 @@ def report(split: str, budget: tuple[int, int]) -> str:
     ]
     for width in sorted(set(data["width"])):
         at = data["width"] == width
-        j = judge(acted, flagged, at)
-        lines.append(
-            f"| {width:.0f} | {len(set(data['seed'][at]))} | {j['good']} | {j['flagged']} | "
-            f"{j['precision']:.3f} | {j['recall']:.3f} | {j['false_accept']:.3f} |"
-        )
+        j, conditions = judge(acted, flagged, at), len(set(data["seed"][at]))
+        lines.append(f"| {width:.0f} | {conditions} | {j['good']} | {judged_cells(j)}")
     return "\n".join(lines)
 
 

@@ -463,10 +463,7 @@ def shadow_report(rounds: str, split: str) -> str:
     for w in sorted(set(width)):
         at = width == w
         j, n = judge(data, agreement >= CHOSEN_TAU, at), len({k[0] for k in np.array(keys)[at]})
-        lines.append(
-            f"| {w:.0f} | {n} | {j['good']} | {j['flagged']} | {j['precision']:.3f} | "
-            f"{j['recall']:.3f} | {j['false_accept']:.3f} |"
-        )
+        lines.append(f"| {w:.0f} | {n} | {j['good']} | {judged_cells(j)}")
     return "\n".join(lines)
 
 
