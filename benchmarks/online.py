@@ -14,12 +14,16 @@ until the estimate is ready:
 The first frame is reported apart (all 2500 particles are rendered; KLD-sampling then keeps
 ~500); compile time is separate. Peak RSS is the process's.
 
-``--check`` times, beside ``update``, what the streaming check of
-``experiments/sg2loc_stream_refine.py`` adds per frame: a depth-blind stream's ``update``, the
-refinement with depth of both streams' estimates (:func:`jaxloc.sg2loc.refine.refine_frame`, depth
-pixels every ``max(4, width // 96)``-th pixel; ``--check-budgets``: its rounds and steps, by
-default RefineConfig's 16 x 20 beside 4 x 10) and the depth agreement at the refined pose
-(:func:`jaxloc.sg2loc.depth_agreement`, timed over the whole sequence and divided by its frames).
+``--check`` times, beside ``update``, what the two streaming checks add per frame: a depth-blind
+stream's ``update``, the refinement with depth of the stream's estimate
+(:func:`jaxloc.sg2loc.refine.refine_frame`, depth pixels every ``max(4, width // 96)``-th pixel;
+``--check-budgets``: its rounds and steps, by default RefineConfig's 16 x 20 beside 4 x 10) and
+the depth agreement at the refined pose (:func:`jaxloc.sg2loc.depth_agreement`, timed over the
+whole sequence and divided by its frames); then the check of
+``experiments/sg2loc_stream_refine.py`` refines the depth-blind estimate as well, and the check of
+``experiments/sg2loc_stream_margin.py`` instead scores the refined pose and the depth-blind
+estimate under the depth-blind model (timed as their render, :func:`jaxloc.sg2loc.render_batch` of
+the two poses on the stream's ray grid; the scores' arithmetic on those rays is not timed).
 
     python benchmarks/online.py                        # 320x180 and 960x540, 10 frames
     python benchmarks/online.py --sizes 960x540 --frames 20
@@ -113,7 +117,7 @@ def time_check(width: int, height: int, frames: int, seed: int, budget: str) -> 
     import jax.numpy as jnp
 
     from jaxloc.geometry import yaw_pose_to_se3
-    from jaxloc.sg2loc import depth_agreement
+    from jaxloc.sg2loc import depth_agreement, render_batch
     from jaxloc.sg2loc.refine import RefineConfig, refine_frame
 
     episode = make_episode(seed, frames, EpisodeConfig(sensor=SensorConfig(width, height)))
@@ -123,7 +127,9 @@ def time_check(width: int, height: int, frames: int, seed: int, budget: str) -> 
     }
     rounds, steps = (int(n) for n in budget.split("x"))
     refine_config = RefineConfig(depth_stride=max(4, width // 96), rounds=rounds, max_steps=steps)
-    parts = {"update": [], "blind update": [], "two refinements": []}
+    parts = {"update": [], "blind update": [], "refinement": [], "blind refinement": []}
+    parts["two-pose render"] = []
+    render_two = jax.jit(render_batch, static_argnames=("engine", "differentiable"))
     acted = []
     for t in range(frames):
         estimates = {}
@@ -140,14 +146,20 @@ def time_check(width: int, height: int, frames: int, seed: int, budget: str) -> 
             )
             jax.block_until_ready(estimates[name])
             parts[part].append(time.perf_counter() - start)
-        start = time.perf_counter()
-        for name in ("depth", "blind"):
+        for name, part in (("depth", "refinement"), ("blind", "blind refinement")):
+            start = time.perf_counter()
             T_init = yaw_pose_to_se3(estimates[name].pose, jnp.asarray(seq.tilt[t]))
             result = refine_frame(scene, seq.camera, T_init, refine_config, depth=seq.depth[t])
             jax.block_until_ready(result)
+            parts[part].append(time.perf_counter() - start)
             if name == "depth":
                 acted.append(np.where(result.ok, result.yaw_pose, estimates[name].pose))
-        parts["two refinements"].append(time.perf_counter() - start)
+        start = time.perf_counter()
+        two = jnp.asarray(np.stack([acted[-1], estimates["blind"].pose]))
+        grid = streams["blind"].config.grid
+        tilt = jnp.asarray(seq.tilt[t])
+        jax.block_until_ready(render_two(scene, two, seq.camera, grid, tilt, differentiable=False))
+        parts["two-pose render"].append(time.perf_counter() - start)
     poses = jnp.asarray(np.stack(acted))
     jax.block_until_ready(depth_agreement(scene, seq, poses, 20))  # compiles
     start = time.perf_counter()
@@ -155,7 +167,9 @@ def time_check(width: int, height: int, frames: int, seed: int, budget: str) -> 
     agreement = (time.perf_counter() - start) / frames
     out = {part: float(np.median(times[1:])) for part, times in parts.items()}
     out["agreement"] = agreement
-    out["checked"] = sum(out.values())
+    common = out["update"] + out["blind update"] + out["refinement"] + agreement
+    out["twin check"] = common + out["blind refinement"]
+    out["margin check"] = common + out["two-pose render"]
     return {"size": f"{width}x{height}", "budget": budget, **out}
 
 
@@ -209,15 +223,18 @@ def main(argv=None) -> None:
         f"average {os.getloadavg()[0]:.1f} at the end):\n"
     )
     print(
-        "| image | refinement rounds x steps | update | depth-blind update | refinement of both "
-        "estimates | depth agreement | checked frame | checked / update |"
+        "| image | refinement rounds x steps | update | depth-blind update | refinement | "
+        "depth-blind refinement | depth agreement | two-pose render | frame with the refined-twin "
+        "check | / update | frame with the margin check | / update |"
     )
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in checks:
         print(
             f"| {r['size']} | {r['budget']} | {r['update']:.3f} | {r['blind update']:.3f} | "
-            f"{r['two refinements']:.3f} | {r['agreement']:.3f} | {r['checked']:.3f} | "
-            f"{r['checked'] / r['update']:.1f}x |"
+            f"{r['refinement']:.3f} | {r['blind refinement']:.3f} | {r['agreement']:.3f} | "
+            f"{r['two-pose render']:.3f} | {r['twin check']:.3f} | "
+            f"{r['twin check'] / r['update']:.1f}x | {r['margin check']:.3f} | "
+            f"{r['margin check'] / r['update']:.1f}x |"
         )
 
 
