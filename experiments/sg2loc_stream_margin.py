@@ -24,8 +24,9 @@ best_s`` >= -delta" (this frame's margin, some frame's so far, or the mean over 
 and the variant on the stream's own, unrefined estimate) per (delta, tau_pose), and per image
 width at the choice made on the development split (:func:`choose`). ``--inject SHARE``: the
 depth-blind stream replaces ``SHARE`` of its capacity by random particles after every frame it is
-not localized (logged to ``frames_SPLIT_injectSHARE.csv``). ``--seeds`` with ``--report``: only
-those seeds' rows.
+not localized (logged to ``frames_SPLIT_injectSHARE.csv``); ``--warm``: each refinement starts
+from the previous refined pose (:func:`refine_warm`; ``frames_SPLIT_warm.csv``). ``--seeds`` with
+``--report``: only those seeds' rows.
 
     JAX_PLATFORMS=cpu python experiments/sg2loc_stream_margin.py --run --seeds 5100-5123
     python experiments/sg2loc_stream_margin.py --report > \\
@@ -64,7 +65,7 @@ from sg2loc_verdict_evidence import (  # noqa: E402
 OUT = Path(__file__).resolve().parents[1] / "experiments" / "results" / "sg2loc_stream_margin"
 FIELDS = ["seed", "kind", "frame", "width", "pos", "rot", "acted_pos", "acted_rot", "status"]
 FIELDS += ["acted_rel", "own_rel", "acted_s", "own_s", "blind_s", "best_s", "p95_s"]
-FIELDS += ["stream_seconds", "blind_seconds", "score_seconds", "refine_seconds"]
+FIELDS += ["stream_seconds", "blind_seconds", "score_seconds", "refine_seconds", "steps"]
 #: The refinement's (rounds, max_steps): as cheap as checked well in sg2loc_stream_refine.py.
 BUDGET = (4, 10)
 DELTAS = (0.0, 0.01, 0.02, 0.05, 0.1, 0.2)
@@ -107,11 +108,35 @@ def make_scorer():
     return score
 
 
+def refine_warm(scene, sequence, poses: np.ndarray, config) -> tuple[np.ndarray, list]:
+    """As ``sg2loc_stream_refine.refine_estimates``, but frame t's refinement starts from frame
+    t-1's refined pose moved by the ego-motion where that refinement was ok (else from the
+    stream's estimate)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxloc.geometry import compose_yaw, yaw_pose_to_se3
+    from jaxloc.sg2loc.refine import refine_frame
+
+    acted, results = poses.copy(), []
+    for t in range(len(poses)):
+        start = poses[t]
+        if t and results[-1].ok:
+            start = compose_yaw(jnp.asarray(acted[t - 1]), jnp.asarray(sequence.ego_motion[t - 1]))
+        T_init = yaw_pose_to_se3(jnp.asarray(start), jnp.asarray(sequence.tilt[t]))
+        result = refine_frame(scene, sequence.camera, T_init, config, depth=sequence.depth[t])
+        results.append(jax.tree.map(np.asarray, result))
+        if results[-1].ok:
+            acted[t] = results[-1].yaw_pose
+    return acted, results
+
+
 def stream_and_score(
-    seed: int, kind: str, condition: dict, shared, score, inject: float
+    seed: int, kind: str, condition: dict, shared, score, inject: float, warm: bool
 ) -> list[dict]:
     """The rows of one sequence (see the module docstring); ``inject``: the share of the capacity
-    the depth-blind stream replaces by random particles after each frame it is not localized."""
+    the depth-blind stream replaces by random particles after each frame it is not localized;
+    ``warm``: the refinements start from the previous refined pose (:func:`refine_warm`)."""
     import dataclasses
 
     import jax
@@ -165,7 +190,8 @@ def stream_and_score(
         depth_stride=refine_stride(condition["width"]), rounds=rounds, max_steps=steps
     )
     start = time.perf_counter()
-    acted, results = refine_estimates(scene, sequence, poses["stream"], refine_config)
+    refine = refine_warm if warm else refine_estimates
+    acted, results = refine(scene, sequence, poses["stream"], refine_config)
     seconds["refine"] = time.perf_counter() - start
     start = time.perf_counter()
     shares = []
@@ -202,6 +228,7 @@ def stream_and_score(
             "acted_pos": round(float(acted_pos[t]), 4),
             "acted_rot": round(float(acted_rot[t]), 3),
             "status": int(results[t].status),
+            "steps": int(results[t].steps),
             **{f"{name}_rel": round(float(v[t]), 4) for name, v in rel.items()},
             **{name: round(float(v), 4) for name, v in zip(names, shares[t], strict=True)},
             **{f"{name}_seconds": round(s, 2) for name, s in seconds.items()},
@@ -210,16 +237,18 @@ def stream_and_score(
     ]
 
 
-def frames_file(split: str, inject: float) -> Path:
-    """The log of ``split`` with the depth-blind stream's injection share ``inject``."""
-    return OUT / (f"frames_{split}.csv" if inject == 0 else f"frames_{split}_inject{inject:g}.csv")
+def frames_file(split: str, inject: float, warm: bool) -> Path:
+    """The log of ``split`` with the depth-blind stream's injection share ``inject`` and warm
+    started refinements or not."""
+    suffix = (f"_inject{inject:g}" if inject else "") + ("_warm" if warm else "")
+    return OUT / f"frames_{split}{suffix}.csv"
 
 
-def run(seeds, split: str, inject: float) -> None:
-    path = frames_file(split, inject)
+def run(seeds, split: str, inject: float, warm: bool) -> None:
+    path = frames_file(split, inject, warm)
     score = make_scorer()
     for seed, kind, condition, shared in pending_sequences(seeds, split, path, depth_only=True):
-        rows = stream_and_score(seed, kind, condition, shared, score, inject)
+        rows = stream_and_score(seed, kind, condition, shared, score, inject, warm)
         append_rows(path, FIELDS, rows)
         r = rows[0]
         print(
@@ -230,15 +259,19 @@ def run(seeds, split: str, inject: float) -> None:
         )
 
 
-def load(split: str, inject: float = 0.0, seeds=None) -> dict[str, np.ndarray]:
-    """The log of ``split`` and ``inject`` (only the rows of ``seeds``, if given)."""
-    with frames_file(split, inject).open() as f:
+def load(split: str, inject: float = 0.0, warm: bool = False, seeds=None) -> dict:
+    """The log of ``split``, ``inject`` and ``warm`` (only the rows of ``seeds``, if given; a
+    column the log does not hold is NaN)."""
+    with frames_file(split, inject, warm).open() as f:
         rows = [r for r in csv.DictReader(f) if seeds is None or int(r["seed"]) in seeds]
-    return {k: np.array([r[k] for r in rows], object if k == "kind" else float) for k in FIELDS}
+    return {
+        k: np.array([r.get(k, "nan") for r in rows], object if k == "kind" else float)
+        for k in FIELDS
+    }
 
 
-def report(split: str, inject: float, seeds=None) -> str:
-    data = load(split, inject, seeds)
+def report(split: str, inject: float, warm: bool, seeds=None) -> str:
+    data = load(split, inject, warm, seeds)
     acted = dict(data, pos=data["acted_pos"], rot=data["acted_rot"])
     right, ok = data["kind"] == "right", data["status"] == 0
     every = np.ones(len(right), bool)
@@ -259,7 +292,12 @@ def report(split: str, inject: float, seeds=None) -> str:
         "Seconds per sequence (10 frames, compilation included), median: stream "
         f"{np.median(data['stream_seconds']):.1f}, depth-blind stream "
         f"{np.median(data['blind_seconds']):.1f}, the scores {np.median(data['score_seconds']):.1f}"
-        f", refinement {np.median(data['refine_seconds']):.1f}.",
+        f", refinement {np.median(data['refine_seconds']):.1f}"
+        + (
+            f"; optimiser steps per refinement, median {np.median(data['steps']):.0f}."
+            if np.isfinite(data["steps"]).all()
+            else "."
+        ),
         "",
         "Flagged: the refinement is ok, the depth agrees at the refined pose (>= tau_pose) and its "
         "depth-blind score is within delta of the depth-blind stream's best particle (now, at "
@@ -288,7 +326,7 @@ def report(split: str, inject: float, seeds=None) -> str:
             flagged = (data["own_s"] >= data["best_s"] - delta) & (data["own_rel"] >= tau_pose)
             j = judge(data, flagged, every)
             lines.append(f"| {delta:g} | {tau_pose:.2f} | {judged_cells(j)}")
-    delta, tau_pose, when = choose(inject)
+    delta, tau_pose, when = choose(inject, warm)
     flagged = confirmations(data, episodes, delta)[when] & ok & (data["acted_rel"] >= tau_pose)
     whole = judge(acted, flagged, every)
     lines += [
@@ -308,11 +346,11 @@ def report(split: str, inject: float, seeds=None) -> str:
     return "\n".join(lines)
 
 
-def choose(inject: float) -> tuple[float, float, str]:
+def choose(inject: float, warm: bool) -> tuple[float, float, str]:
     """(delta, tau_pose, when) chosen on the development split: the row of the report's grid with
     the most recall of the good frames whose precision is >= 0.95 and whose share of wrong places
     flagged is <= 0.05 on the whole split and on each half of its conditions (alternate seeds)."""
-    data = load("dev", inject)
+    data = load("dev", inject, warm)
     acted = dict(data, pos=data["acted_pos"], rot=data["acted_rot"])
     episodes = list(zip(data["seed"], data["kind"], strict=True))
     seeds = sorted(set(data["seed"]))
@@ -369,11 +407,14 @@ def main(argv=None) -> None:
         help="share of the capacity the depth-blind stream replaces by random particles after "
         "each frame it is not localized (default 0: none)",
     )
+    parser.add_argument(
+        "--warm", action="store_true", help="start each refinement from the previous refined pose"
+    )
     args = parser.parse_args(argv)
     if args.run:
-        run(args.seeds, args.split, args.inject)
+        run(args.seeds, args.split, args.inject, args.warm)
     if args.report:
-        print(report(args.split, args.inject, args.seeds))
+        print(report(args.split, args.inject, args.warm, args.seeds))
 
 
 if __name__ == "__main__":
