@@ -25,7 +25,7 @@ and the variant on the stream's own, unrefined estimate) per (delta, tau_pose), 
 width at the choice made on the development split (:func:`choose`). ``--inject SHARE``: the
 depth-blind stream replaces ``SHARE`` of its capacity by random particles after every frame it is
 not localized (logged to ``frames_SPLIT_injectSHARE.csv``); ``--warm``: each refinement starts
-from the previous refined pose (:func:`refine_warm`; ``frames_SPLIT_warm.csv``). ``--seeds`` with
+from the previous refined pose (``frames_SPLIT_warm.csv``). ``--seeds`` with
 ``--report``: only those seeds' rows.
 
     JAX_PLATFORMS=cpu python experiments/sg2loc_stream_margin.py --run --seeds 5100-5123
@@ -108,35 +108,12 @@ def make_scorer():
     return score
 
 
-def refine_warm(scene, sequence, poses: np.ndarray, config) -> tuple[np.ndarray, list]:
-    """As ``sg2loc_stream_refine.refine_estimates``, but frame t's refinement starts from frame
-    t-1's refined pose moved by the ego-motion where that refinement was ok (else from the
-    stream's estimate)."""
-    import jax
-    import jax.numpy as jnp
-
-    from jaxloc.geometry import compose_yaw, yaw_pose_to_se3
-    from jaxloc.sg2loc.refine import refine_frame
-
-    acted, results = poses.copy(), []
-    for t in range(len(poses)):
-        start = poses[t]
-        if t and results[-1].ok:
-            start = compose_yaw(jnp.asarray(acted[t - 1]), jnp.asarray(sequence.ego_motion[t - 1]))
-        T_init = yaw_pose_to_se3(jnp.asarray(start), jnp.asarray(sequence.tilt[t]))
-        result = refine_frame(scene, sequence.camera, T_init, config, depth=sequence.depth[t])
-        results.append(jax.tree.map(np.asarray, result))
-        if results[-1].ok:
-            acted[t] = results[-1].yaw_pose
-    return acted, results
-
-
 def stream_and_score(
     seed: int, kind: str, condition: dict, shared, score, inject: float, warm: bool
 ) -> list[dict]:
     """The rows of one sequence (see the module docstring); ``inject``: the share of the capacity
     the depth-blind stream replaces by random particles after each frame it is not localized;
-    ``warm``: the refinements start from the previous refined pose (:func:`refine_warm`)."""
+    ``warm``: the refinements start from the previous refined pose (``refine_estimates``)."""
     import dataclasses
 
     import jax
@@ -190,8 +167,7 @@ def stream_and_score(
         depth_stride=refine_stride(condition["width"]), rounds=rounds, max_steps=steps
     )
     start = time.perf_counter()
-    refine = refine_warm if warm else refine_estimates
-    acted, results = refine(scene, sequence, poses["stream"], refine_config)
+    acted, results = refine_estimates(scene, sequence, poses["stream"], refine_config, warm)
     seconds["refine"] = time.perf_counter() - start
     start = time.perf_counter()
     shares = []

@@ -77,19 +77,26 @@ def refine_stride(width: int) -> int:
     return max(4, width // 96)
 
 
-def refine_estimates(scene, sequence, poses: np.ndarray, config) -> tuple[np.ndarray, list]:
+def refine_estimates(
+    scene, sequence, poses: np.ndarray, config, warm: bool = False
+) -> tuple[np.ndarray, list]:
     """Each frame's (x, y, z, yaw) estimate refined with its depth
     (:func:`jaxloc.sg2loc.refine.refine_frame`): the poses to act on (the refined one where the
-    refinement is ok, else the estimate) and the host :class:`RefineResult` of every frame."""
+    refinement is ok, else the estimate) and the host :class:`RefineResult` of every frame. With
+    ``warm`` frame t's refinement starts from frame t-1's refined pose moved by the ego-motion
+    where that refinement was ok (else from the estimate)."""
     import jax
     import jax.numpy as jnp
 
-    from jaxloc.geometry import yaw_pose_to_se3
+    from jaxloc.geometry import compose_yaw, yaw_pose_to_se3
     from jaxloc.sg2loc.refine import refine_frame
 
     acted, results = poses.copy(), []
     for t in range(len(poses)):
-        T_init = yaw_pose_to_se3(jnp.asarray(poses[t]), jnp.asarray(sequence.tilt[t]))
+        start = poses[t]
+        if warm and t and results[-1].ok:
+            start = compose_yaw(jnp.asarray(acted[t - 1]), jnp.asarray(sequence.ego_motion[t - 1]))
+        T_init = yaw_pose_to_se3(jnp.asarray(start), jnp.asarray(sequence.tilt[t]))
         result = refine_frame(scene, sequence.camera, T_init, config, depth=sequence.depth[t])
         results.append(jax.tree.map(np.asarray, result))
         if results[-1].ok:
