@@ -127,8 +127,10 @@ def time_check(width: int, height: int, frames: int, seed: int, budget: str) -> 
     }
     rounds, steps = (int(n) for n in budget.split("x"))
     refine_config = RefineConfig(depth_stride=max(4, width // 96), rounds=rounds, max_steps=steps)
-    parts = {"update": [], "blind update": [], "refinement": [], "blind refinement": []}
-    parts["two-pose render"] = []
+    parts = {
+        part: []
+        for part in ("update", "blind update", "refinement", "blind refinement", "two-pose render")
+    }
     render_two = jax.jit(render_batch, static_argnames=("engine", "differentiable"))
     acted = []
     for t in range(frames):
