@@ -15,10 +15,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _drive_records import assert_same, cli_json
 from _helipr_fixtures import FIRST_STAMP, PERIOD_NS, ns_to_seconds, tum_line, write_helipr_sequence
 
 from jaxloc.cli import main
+from jaxloc.io import open_lidar_recording, open_triplet_map
 from jaxloc.io.lidar_sequence import open_lidar_sequence
+from jaxloc.m2loc import localize_drive, m2loc_config
 from jaxloc.m2loc._accumulation import WINDOW_MIN_CLIQUE, WINDOW_MIN_INSTANCES
 from jaxloc.m2loc._evaluation import format_record as _format_record
 from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
@@ -181,7 +184,6 @@ def test_save_map_path_is_checked_before_any_work(sequence_dir, built, tmp_path,
 def test_no_robust_is_m2loc_as_published():
     from jaxloc.cli import build_parser
     from jaxloc.cli._lidar import triplet_config
-    from jaxloc.m2loc import m2loc_config
 
     parser = build_parser()
     default = triplet_config(parser.parse_args(["localize-lidar", "map", "scan.bin"]))
@@ -191,6 +193,30 @@ def test_no_robust_is_m2loc_as_published():
     assert default == m2loc_config(3)
     assert (default.one_to_one, default.hypotheses) == (True, 256)
     assert published == m2loc_config(3, robust=False)
+
+
+@pytest.mark.parametrize(
+    ("accumulate", "track"), [(1, False), (3, True)], ids=["single", "accumulate_and_track"]
+)
+def test_localize_lidar_is_localize_drive(built, sequence_dir, accumulate, track):
+    """The command passes --accumulate and --track to ``localize_drive`` as they are: the same
+    flags, poses, cliques, windows and tracking states as the library on the same recording (each
+    mode alone is checked against its building blocks in tests/test_m2loc_drive.py). The scans
+    (--every 5), maps and settings are those of the tests above, so their programs are reused:
+    the saved map for single scans, the folder with one scale and M2Loc as published for
+    tracking."""
+    folder, saved = built
+    argv = [sequence_dir, "--every", "5", "--json", "--no-progress"]
+    if track:
+        argv += ["--scales", "1", "--no-robust", "--accumulate", str(accumulate), "--track"]
+        triplet_map = open_triplet_map(folder, m2loc_config(1, robust=False))
+    else:
+        triplet_map = open_triplet_map(saved)
+    records = cli_json(["localize-lidar", folder if track else saved, *argv])
+    recording = open_lidar_recording(sequence_dir, every=5)
+    result = localize_drive(triplet_map, recording, accumulate=accumulate, track=track)
+    assert_same(records, result, track)
+    assert sum(r["valid"] for r in records) >= 3, records
 
 
 # ----------------------------------------------------------------------------- HeLiPR layout

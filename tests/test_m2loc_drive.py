@@ -1,21 +1,17 @@
 """``jaxloc.m2loc.localize_drive``: a drive in one call, against the building blocks it is made of
 (``localize_scan``, ``localize_window``, ``Tracker``) on simulated drives, its settings and errors,
-and against the command line: ``localize-lidar`` and the library give identical flags and poses on
-the fixture sequence of ``tests/test_cli_lidar_maps.py`` for single scans and for accumulation
-with tracking, and on a drive simulated on a real HeLiPR map (skipped without
-``../shared/data``)."""
+and against the command line on a drive simulated on a real HeLiPR map (skipped without
+``../shared/data``). The command line against the library on a sequence folder, for single scans
+and for accumulation with tracking: tests/test_cli_lidar_maps.py."""
 
 from __future__ import annotations
 
-import contextlib
-import io
-import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _drive_records import assert_same, cli_json
 
-from jaxloc.cli import main
 from jaxloc.io import open_lidar_recording, open_triplet_map, read_instance_map, read_road_normals
 from jaxloc.m2loc import (
     DriveConfig,
@@ -31,7 +27,6 @@ from jaxloc.m2loc._accumulation import WINDOW_MIN_CLIQUE
 from jaxloc.m2loc._drive import STATUS_NAMES, ScanInstances, ScanSource
 from jaxloc.m2loc._localization import query_capacity
 from jaxloc.m2loc._tracking import LOST, RELOCALIZED, track_step
-from jaxloc.synthetic.lidar_scans import make_lidar_sequence, write_semantickitti_sequence
 from jaxloc.synthetic.outdoor import make_drive, make_outdoor_world
 
 REAL_MAPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "helipr_instance_maps"
@@ -175,59 +170,6 @@ def test_settings_and_errors(world_and_map, drive):
 
 
 # ----------------------------------------------------------------------------- the command line
-
-
-def cli_json(argv) -> list[dict]:
-    printed = io.StringIO()
-    with contextlib.redirect_stdout(printed):
-        code = main([str(a) for a in argv])
-    assert code == 0
-    return json.loads(printed.getvalue())["scans"]
-
-
-def assert_same(records: list[dict], result, track: bool) -> None:
-    """The CLI's records and the library's result: flags, poses (within the JSON's rounding to
-    1e-6), clique sizes, fused windows and tracking states."""
-    assert len(records) == len(result.steps)
-    for record, step, pose in zip(records, result.steps, result.poses, strict=True):
-        assert record["valid"] == bool(step.result.valid)
-        np.testing.assert_allclose(record["T_map_scan"], pose, atol=1e-6, rtol=0)
-        assert record["clique_size"] == step.result.clique_size
-        fused = 1 if step.fused is None else step.fused.members.shape[1]
-        assert record.get("fused_scans", 1) == fused
-        assert record.get("small_clique", False) == step.small_clique
-        assert record.get("track") == (STATUS_NAMES[step.status] if track else None)
-
-
-@pytest.fixture(scope="module")
-def sequence_and_map(tmp_path_factory):
-    """The fixture sequence of test_cli_lidar_maps.py and its map saved by build-lidar-map."""
-    world = make_outdoor_world("dense", seed=2, blocks=1, bridge_length=0)
-    scans = make_lidar_sequence(world, (10.0, 0.0), (190.0, 0.0), 16, seed=3, max_range=30.0)
-    root = tmp_path_factory.mktemp("drive_cli")
-    write_semantickitti_sequence(root / "seq", scans)
-    saved = root / "map.npz"
-    argv = ["build-lidar-map", root / "seq", root / "map", "--every", "2", "--save-map", saved]
-    assert main([str(a) for a in [*argv, "--no-progress"]]) == 0
-    return root / "seq", saved
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize(
-    ("accumulate", "track"), [(1, False), (3, True)], ids=["single", "accumulate_and_track"]
-)
-def test_library_and_command_line_give_the_same_drive(sequence_and_map, accumulate, track):
-    """Single scans, and --accumulate with --track (the command passes both options to
-    ``localize_drive`` as they are; each mode alone is checked against its building blocks above,
-    and through the command line in tests/test_cli_lidar_maps.py)."""
-    sequence, saved = sequence_and_map
-    options = ["--accumulate", str(accumulate)] + (["--track"] if track else [])
-    records = cli_json(["localize-lidar", saved, sequence, "--every", "3", "--json",
-                        "--no-progress", *options])  # fmt: skip
-    recording = open_lidar_recording(sequence, every=3)
-    result = localize_drive(open_triplet_map(saved), recording, accumulate=accumulate, track=track)
-    assert_same(records, result, track)
-    assert sum(r["valid"] for r in records) >= 3, records
 
 
 @pytest.mark.slow
