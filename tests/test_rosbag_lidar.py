@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _drive_records import cli_json
 from _helipr_fixtures import tum_line, write_kitti_twin
 from _rosbag_fixtures import KINDS, BagWriter, bag_path, packed_records, write_drive
 from hypothesis import HealthCheck, given, settings, strategies as st
@@ -544,7 +545,7 @@ def test_a_drive_on_a_real_map_from_bags_is_the_folder_s_drive(tmp_path):
     lines = [tum_line(format_ns_as_seconds(t), p) for t, p in zip(STAMPS, truth, strict=True)]
     gt.write_text("\n".join(lines) + "\n")
     common = ["--accumulate", "3", "--json", "--no-progress"]
-    expected = _records(["localize-lidar", saved, tmp_path / "folder", "--odometry", odometry,
+    expected = cli_json(["localize-lidar", saved, tmp_path / "folder", "--odometry", odometry,
                          *common])  # fmt: skip
     assert sum(r["valid"] for r in expected) >= 3, expected
     for kind in ("mcap", "ros1"):
@@ -552,7 +553,7 @@ def test_a_drive_on_a_real_map_from_bags_is_the_folder_s_drive(tmp_path):
         bag = write_drive(bag_path(tmp_path / kind, kind), kind, scans, STAMPS,
                           odometry_poses=chain)  # fmt: skip
         out = tmp_path / f"{kind}.mcap"
-        got = _records(["localize-lidar", saved, bag, "--gt", gt, "--poses-out", out, *common])
+        got = cli_json(["localize-lidar", saved, bag, "--gt", gt, "--poses-out", out, *common])
         assert [r["valid"] for r in got] == [r["valid"] for r in expected]
         for mine, theirs in zip(got, expected, strict=True):
             if theirs["valid"]:
@@ -571,14 +572,3 @@ def test_a_drive_on_a_real_map_from_bags_is_the_folder_s_drive(tmp_path):
             assert poses and poses[0].msgtype == "geometry_msgs/msg/PoseStamped"
             count = sum(1 for _ in reader.messages(connections=poses))
         assert count == sum(r["valid"] for r in got)
-
-
-def _records(argv) -> list[dict]:
-    import contextlib
-    import io as text_io
-
-    printed = text_io.StringIO()
-    with contextlib.redirect_stdout(printed):
-        code = main([str(a) for a in argv])
-    assert code == 0
-    return json.loads(printed.getvalue())["scans"]
