@@ -33,7 +33,9 @@ step knows (log sigma, log rays per particle, log capacity), fitted on the devel
 threshold the smallest that keeps >= 97 % of the flagged frames right and <= 2 % of the
 wrong-place frames flagged on out-of-fold confidences (5 groups of seeds, each predicted by a fit
 without it); on the development split itself the candidate's confidences are out of fold. It
-ends with the candidate's reliability table.
+ends with the candidate's reliability table. ``--ceiling SPLIT``: the most any logistic rule over
+the step's own evidence could flag on a split, fitted and thresholded on that split (an upper
+bound, :func:`ceiling`).
 
     JAX_PLATFORMS=cpu python experiments/sg2loc_verdict_conditions.py --split dev \
         --seeds 5100-5159
@@ -42,6 +44,7 @@ ends with the candidate's reliability table.
     python experiments/sg2loc_verdict_conditions.py --fit dev
     python experiments/sg2loc_verdict_conditions.py --report dev
     python experiments/sg2loc_verdict_conditions.py --report kinect
+    python experiments/sg2loc_verdict_conditions.py --ceiling kinect
 """
 
 from __future__ import annotations
@@ -316,12 +319,14 @@ def features(data: dict[str, np.ndarray], use_depth: bool, use_color: bool) -> n
     return np.stack([ones, *known, *evidence], 1)
 
 
-def fit_logistic(x: np.ndarray, y: np.ndarray, l2: float = 1e-3) -> np.ndarray:
+def fit_logistic(
+    x: np.ndarray, y: np.ndarray, l2: float = 1e-3, nonnegative: int = 4
+) -> np.ndarray:
     """Weights of ``P(y) = sigmoid(x @ w)`` by Newton's method, the evidence weights (the last
-    four) kept >= 0: one that would turn negative is fixed at 0 and the rest refitted."""
+    ``nonnegative``) kept >= 0: one that would turn negative is fixed at 0 and the rest refitted."""
     free = np.ones(x.shape[1], bool)
     free[np.all(x == 0, axis=0)] = False
-    evidence = np.arange(x.shape[1]) >= x.shape[1] - 4
+    evidence = np.arange(x.shape[1]) >= x.shape[1] - nonnegative
     while True:
         w = np.zeros(x.shape[1])
         for _ in range(100):
@@ -488,6 +493,55 @@ def report(split: str, dev_split: str = "dev") -> str:
     return "\n".join(lines)
 
 
+def ceiling(split: str) -> str:
+    """The most a rule over the step's own evidence could flag on ``split``, fitted on it.
+
+    Per kind of run (with or without depth) and mode, a logistic model of being within 0.5 m and
+    10 deg over every term the step logs or knows (logit of the mass, the semantic fraction, the
+    depth deficit, the logs of the xy, z and yaw spreads and of the ESS fraction, log sigma, log
+    rays per particle, log capacity; with and without the colour score; any sign) is fitted on
+    the split's own frames, and each group's threshold is the lowest that keeps >= 0.95 of its
+    flagged frames right and <= 0.05 of its wrong-place frames flagged. Both choices are made on
+    the data judged: an upper bound on what any such rule could reach there, not a result.
+    """
+    data = load(split)
+    right, good, wrong = labels(data)
+    spread_xy = np.hypot(data["spread_x"], data["spread_y"])
+    spreads = [np.log(v + 1e-3) for v in (spread_xy, data["spread_z"], data["spread_yaw"])]
+    lines = [
+        f"split {split}: the in-sample ceiling of a logistic rule over the step's evidence "
+        "(fitted and thresholded on the frames it judges; P >= 0.95, W <= 0.05 per group)",
+        "",
+        "| colour score | run | mode | group | threshold | flagged, P, R, W |",
+        "|---|---|---|---|---|---|",
+    ]
+    for use_color in (False, True):
+        x = np.column_stack([features(data, True, use_color), *spreads, np.log(data["ess"])])
+        for use_depth in (True, False):
+            for mode in ("offline", "online"):
+                runs = (data["use_depth"] == use_depth) & (data["mode"] == mode)
+                w = fit_logistic(x[runs], right[runs].astype(float), nonnegative=0)
+                score = x @ w
+                groups = {"all": runs}
+                for width in sorted(set(data["width"][runs])):
+                    groups[f"{int(width)} px wide"] = runs & (data["width"] == width)
+                for name, where in groups.items():
+                    row = "- | none meets P and W"
+                    for t in np.unique(score[where]):
+                        s = judge(score >= t, right, good, wrong, where)
+                        if s["precision"] >= 0.95 and s["false_accept"] <= 0.05:
+                            row = (
+                                f"{t:.2f} | {s['flagged']}, {s['precision']:.3f}, "
+                                f"{s['recall']:.3f} ({s['good']}), {s['false_accept']:.3f} "
+                                f"({s['wrong_frames']})"
+                            )
+                            break
+                    run = "with depth" if use_depth else "without depth"
+                    used = "used" if use_color else "left out"
+                    lines.append(f"| {used} | {run} | {mode} | {name} | {row} |")
+    return "\n".join(lines)
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--split", help="run the seeds into frames_<split>.csv")
@@ -497,6 +551,7 @@ def main(argv=None) -> None:
     parser.add_argument("--sizes", default=None, help="e.g. 320x180,960x540 (default: drawn)")
     parser.add_argument("--fit", metavar="SPLIT", help="fit the confidence's presets on a split")
     parser.add_argument("--report", metavar="SPLIT", help="judge the rule and the candidate")
+    parser.add_argument("--ceiling", metavar="SPLIT", help="the in-sample ceiling on a split")
     args = parser.parse_args(argv)
     sizes = None
     if args.sizes:
@@ -512,6 +567,8 @@ def main(argv=None) -> None:
                   f"candidate's threshold {t:.3f}")  # fmt: skip
     if args.report:
         print(report(args.report))
+    if args.ceiling:
+        print(ceiling(args.ceiling))
 
 
 if __name__ == "__main__":
