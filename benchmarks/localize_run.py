@@ -12,7 +12,14 @@ rounds so that a slow spell of the machine hits them alike. A child times:
   frame;
 * the child's peak RSS.
 
+``--split``: instead of older checkouts, this checkout's filter beside the same particle budget
+split between a check and the filter: ``localize`` with depth on three quarters of the particles,
+a depth-blind ``localize`` on the other quarter and ``depth_agreement`` at the depth-blind
+estimates (``experiments/sg2loc_verdict_evidence.py --shadow-rounds split``); and the same with
+KLD-sampling's floor (``KLDConfig.min_particles``) split 3/4 and 1/4 too (``split_floor``).
+
     python benchmarks/localize_run.py --baseline /tmp/jaxloc-prev --repeats 3
+    python benchmarks/localize_run.py --split --repeats 3
     python benchmarks/localize_run.py --frames 2 --particles 300 --width 320 --height 180
 """
 
@@ -31,21 +38,45 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def child(args: argparse.Namespace) -> dict:
+    import dataclasses
     import resource
 
     import jax
 
-    from jaxloc.sg2loc import SG2LocConfig, kld_for_capacity, localize
+    from jaxloc.sg2loc import KLDConfig, SG2LocConfig, depth_agreement, kld_for_capacity, localize
     from jaxloc.synthetic import indoor
 
     sensor = indoor.SensorConfig(width=args.width, height=args.height)
     episode = indoor.make_episode(args.seed, args.frames, indoor.EpisodeConfig(sensor=sensor))
-    config = SG2LocConfig(capacity=args.particles, kld=kld_for_capacity(args.particles))
+    scene, sequence = episode.scene, episode.sequence
     key = jax.random.key(args.seed)
+
+    def configured(capacity: int, use_depth: bool = True, floor: int = 500) -> SG2LocConfig:
+        kld = kld_for_capacity(capacity, KLDConfig(min_particles=floor))
+        config = SG2LocConfig(capacity=capacity, kld=kld)
+        observation = dataclasses.replace(config.observation, use_depth=use_depth)
+        return dataclasses.replace(config, observation=observation)
+
+    if args.variant.startswith("split"):
+        quarter, floor = args.particles // 4, int(KLDConfig().min_particles)
+        floors = (floor * 3 // 4, floor // 4) if args.variant == "split_floor" else (floor, floor)
+        config = configured(args.particles - quarter, floor=floors[0])
+        blind_config = configured(quarter, False, floors[1])
+
+        def run():
+            result = localize(key, scene, sequence, config)
+            blind = localize(key, scene, sequence, blind_config)
+            share = depth_agreement(scene, sequence, blind.poses, config.strides[-1])
+            return result.poses, share
+    else:
+        config = configured(args.particles)
+
+        def run():
+            return localize(key, scene, sequence, config).poses
 
     def call() -> float:
         start = time.perf_counter()
-        jax.block_until_ready(localize(key, episode.scene, episode.sequence, config).poses)
+        jax.block_until_ready(run())
         return time.perf_counter() - start
 
     first = call()
@@ -64,25 +95,29 @@ def main() -> None:
     parser.add_argument("--width", type=int, default=960)
     parser.add_argument("--height", type=int, default=540)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--split", action="store_true", help="the budget split beside the filter")
+    parser.add_argument("--variant", default="alone", help=argparse.SUPPRESS)
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
         print(json.dumps(child(args)))
         return
-    trees = [ROOT, *(b.resolve() for b in args.baseline)]
+    runs = [(ROOT, "alone"), *((b.resolve(), "alone") for b in args.baseline)]
+    if args.split:
+        runs = [(ROOT, "alone"), (ROOT, "split"), (ROOT, "split_floor")]
     forwarded = [f"--{k}={getattr(args, k)}" for k in ("calls", "frames", "particles", "width")]
     forwarded += [f"--height={args.height}", f"--seed={args.seed}", "--child"]
-    rows: dict[Path, list[dict]] = {tree: [] for tree in trees}
+    rows: dict[tuple[Path, str], list[dict]] = {run: [] for run in runs}
     load_before = " ".join(f"{v:.2f}" for v in os.getloadavg())
     for _ in range(args.repeats):
-        for tree in trees:
+        for tree, variant in runs:
             env = dict(os.environ, JAXLOC_NO_CACHE="1")
             env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(tree), env.get("PYTHONPATH")]))
-            command = [sys.executable, __file__, *forwarded]
+            command = [sys.executable, __file__, *forwarded, f"--variant={variant}"]
             done = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tree)
             if done.returncode != 0:
                 raise SystemExit(f"{tree}: the child failed:\n{done.stderr[-2000:]}")
-            rows[tree].append(json.loads(done.stdout.strip().splitlines()[-1]))
+            rows[tree, variant].append(json.loads(done.stdout.strip().splitlines()[-1]))
     load_after = " ".join(f"{v:.2f}" for v in os.getloadavg())
     print(
         f"localize: {args.frames} frames, {args.width}x{args.height}, {args.particles} particles, "
@@ -94,8 +129,10 @@ def main() -> None:
         "| peak RSS (MiB) |"
     )
     print("|---|---|---|---|---|")
-    for tree, results in rows.items():
-        label = "this one" if tree == ROOT else str(tree)
+    labels = {"alone": "this one", "split": "3/4 with depth + 1/4 depth-blind + agreement"}
+    labels["split_floor"] = labels["split"] + ", KLD floor split too"
+    for (tree, variant), results in rows.items():
+        label = labels[variant] if tree == ROOT else str(tree)
         first, run = ([r[k] for r in results] for k in ("first", "run"))
         shown = " ".join(f"{v:.2f}" for v in first)
         per_frame = statistics.median(run) / args.frames

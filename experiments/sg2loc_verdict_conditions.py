@@ -153,7 +153,9 @@ def episode_config(c: dict):
 
 
 def sg2loc_config(c: dict):
-    from jaxloc.sg2loc import ObservationConfig, SG2LocConfig
+    """The condition's :class:`~jaxloc.sg2loc.SG2LocConfig` (KLD-sampling's floor
+    ``c["min_particles"]`` where given, else the default)."""
+    from jaxloc.sg2loc import KLDConfig, ObservationConfig, SG2LocConfig
 
     observation = ObservationConfig(
         use_depth=bool(c["use_depth"]),
@@ -163,8 +165,13 @@ def sg2loc_config(c: dict):
         lambda_color=c["lambda_color"],
     )
     strides = tuple(int(s) for s in str(c["strides"]).split("/"))
+    kld = KLDConfig(min_particles=c.get("min_particles", KLDConfig().min_particles))
     return SG2LocConfig(
-        capacity=c["capacity"], strides=strides, observation=observation, relocalize_after=0
+        capacity=c["capacity"],
+        strides=strides,
+        observation=observation,
+        relocalize_after=0,
+        kld=kld,
     )
 
 

@@ -27,10 +27,11 @@ depth (a depth-blind *shadow* filter: ``--shadow-rounds all``, the condition's r
 only its first round's stride; ``quarter``, every round with a quarter of the particles;
 ``stream``, the filter with depth and the depth-blind one both as streams,
 :func:`jaxloc.sg2loc.online.filter_sequence`), and logs the depth agreement of the shadow's
-estimates. ``--shadow-report`` judges the check "the shadow's estimate agrees with the
-recording's depth on >= tau of its rays" on the estimates of the filter that scores depth:
-flagged frames, precision (within 0.5 m and 10 degrees), recall of the good frames and
-wrong-place frames flagged, per tau.
+estimates. ``split`` runs the filter with depth again on three quarters of the particles: with the
+``quarter`` shadow, a check within the particle budget of the filter alone. ``--shadow-report``
+judges the check "the shadow's estimate agrees with the recording's depth on >= tau of its rays"
+on the estimates of the filter that scores depth: flagged frames, precision (within 0.5 m and 10
+degrees), recall of the good frames and wrong-place frames flagged, per tau.
 
 ``--split kinect`` runs the held-out generator variant of ``sg2loc_verdict_conditions.py`` (the
 ``"kinect"`` depth model, sizes 320x180 to 960x540) instead of the development conditions.
@@ -46,6 +47,9 @@ wrong-place frames flagged, per tau.
     JAX_PLATFORMS=cpu python experiments/sg2loc_verdict_evidence.py --shadow --shadow-rounds \
         stream --seeds 5100-5123
     python experiments/sg2loc_verdict_evidence.py --shadow-report --shadow-rounds stream
+    JAX_PLATFORMS=cpu python experiments/sg2loc_verdict_evidence.py --shadow --shadow-rounds \
+        split --seeds 5100-5123
+    python experiments/sg2loc_verdict_evidence.py --shadow-report --shadow-rounds split
 """
 
 from __future__ import annotations
@@ -257,8 +261,13 @@ def run(seeds, split: str) -> None:
 
 
 #: The shadow filter's variants: the condition's every round, only its first round's stride,
-#: every round with a quarter of the particles, or streaming (both filters as streams).
-SHADOWS = ("all", "first", "quarter", "stream")
+#: every round with a quarter of the particles, or streaming (both filters as streams); ``split``
+#: runs the filter with depth on the other three quarters of the particles (with the ``quarter``
+#: shadow, the particle budget of the filter alone); ``split_floor`` and ``quarter_floor`` the same
+#: with KLD-sampling's floor (500 particles) split too, 3/4 and 1/4.
+SHADOWS = ("all", "first", "quarter", "stream", "split", "split_floor", "quarter_floor")
+#: KLD-sampling's default floor (``KLDConfig().min_particles``).
+FLOOR = 500
 STREAM_FIELDS = ["seed", "kind", "frame", "width", "pos", "rot", "seconds", "inlier_rel"]
 STREAM_FIELDS += ["inlier_20"]
 STREAM_FIELDS += ["depth_inlier_rel", "depth_inlier_20"]
@@ -309,8 +318,12 @@ def run_shadow(seeds, rounds: str, split: str) -> None:
         blind = dict(condition, use_depth=0)
         if rounds == "first":
             blind["strides"] = str(condition["strides"]).split("/")[0]
-        elif rounds == "quarter":
+        elif rounds.startswith("quarter"):
             blind["capacity"] = condition["capacity"] // 4
+        elif rounds.startswith("split"):  # not blind: the filter with depth on the rest
+            blind = dict(condition, capacity=condition["capacity"] - condition["capacity"] // 4)
+        if rounds.endswith("_floor"):
+            blind["min_particles"] = FLOOR // 4 if rounds.startswith("quarter") else FLOOR * 3 // 4
         if rounds == "stream":
             append_rows(path, STREAM_FIELDS, stream_and_check(seed, kind, condition, shared))
             print(f"stream {seed} {kind} {condition['width']}px", flush=True)
@@ -400,12 +413,17 @@ def own_estimate_table(data: dict[str, np.ndarray]) -> list[str]:
 def shadow_report(rounds: str, split: str) -> str:
     """The depth-blind shadow filter's check: a frame is flagged when the shadow's estimate agrees
     with the recording's depth on >= tau of its rays (``inlier_rel``); judged on the estimates of
-    the filter that scores depth (``frames_dev.csv``), per tau."""
+    the filter that scores depth (``frames_dev.csv``), per tau. ``split``: the estimates of the
+    filter with depth on three quarters of the particles, checked by the ``quarter`` shadow."""
     tables = []
-    for path in (OUT / f"frames_{split}.csv", shadow_file(rounds, split)):
+    pairs = {"split": ("split", "quarter"), "split_floor": ("split_floor", "quarter_floor")}
+    shadows = pairs.get(rounds, (rounds,))
+    for path in (OUT / f"frames_{split}.csv", *(shadow_file(r, split) for r in shadows)):
         with path.open() as f:
             tables.append({(r["seed"], r["kind"], r["frame"]): r for r in csv.DictReader(f)})
-    full, shadow = tables
+    full, shadow = tables[0], tables[-1]
+    if rounds in pairs:  # the three-quarter filter's errors and agreement, the condition's width
+        full = {k: dict(full[k], **r) for k, r in tables[1].items()}
     if rounds == "stream":  # the streams' own file holds the stream with depth's terms
         full = {
             k: dict(r, inlier_rel=r["depth_inlier_rel"], inlier_20=r["depth_inlier_20"])
