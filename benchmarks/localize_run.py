@@ -51,15 +51,16 @@ def child(args: argparse.Namespace) -> dict:
     scene, sequence = episode.scene, episode.sequence
     key = jax.random.key(args.seed)
 
-    def configured(capacity: int, use_depth: bool = True, floor: int = 500) -> SG2LocConfig:
-        kld = kld_for_capacity(capacity, KLDConfig(min_particles=floor))
+    def configured(capacity: int, use_depth: bool = True, floor: int | None = None):
+        kld = KLDConfig() if floor is None else KLDConfig(min_particles=floor)
+        kld = kld_for_capacity(capacity, kld)
         config = SG2LocConfig(capacity=capacity, kld=kld)
         observation = dataclasses.replace(config.observation, use_depth=use_depth)
         return dataclasses.replace(config, observation=observation)
 
     if args.variant.startswith("split"):
         quarter, floor = args.particles // 4, int(KLDConfig().min_particles)
-        floors = (floor * 3 // 4, floor // 4) if args.variant == "split_floor" else (floor, floor)
+        floors = (floor * 3 // 4, floor // 4) if args.variant == "split_floor" else (None, None)
         config = configured(args.particles - quarter, floor=floors[0])
         blind_config = configured(quarter, False, floors[1])
 

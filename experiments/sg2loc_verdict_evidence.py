@@ -266,8 +266,6 @@ def run(seeds, split: str) -> None:
 #: shadow, the particle budget of the filter alone); ``split_floor`` and ``quarter_floor`` the same
 #: with KLD-sampling's floor (500 particles) split too, 3/4 and 1/4.
 SHADOWS = ("all", "first", "quarter", "stream", "split", "split_floor", "quarter_floor")
-#: KLD-sampling's default floor (``KLDConfig().min_particles``).
-FLOOR = 500
 STREAM_FIELDS = ["seed", "kind", "frame", "width", "pos", "rot", "seconds", "inlier_rel"]
 STREAM_FIELDS += ["inlier_20"]
 STREAM_FIELDS += ["depth_inlier_rel", "depth_inlier_20"]
@@ -323,7 +321,10 @@ def run_shadow(seeds, rounds: str, split: str) -> None:
         elif rounds.startswith("split"):  # not blind: the filter with depth on the rest
             blind = dict(condition, capacity=condition["capacity"] - condition["capacity"] // 4)
         if rounds.endswith("_floor"):
-            blind["min_particles"] = FLOOR // 4 if rounds.startswith("quarter") else FLOOR * 3 // 4
+            from jaxloc.sg2loc import KLDConfig
+
+            floor = int(KLDConfig().min_particles)
+            blind["min_particles"] = floor // 4 if rounds.startswith("quarter") else floor * 3 // 4
         if rounds == "stream":
             append_rows(path, STREAM_FIELDS, stream_and_check(seed, kind, condition, shared))
             print(f"stream {seed} {kind} {condition['width']}px", flush=True)
