@@ -18,8 +18,15 @@ a depth-blind ``localize`` on the other quarter and ``depth_agreement`` at the d
 estimates (``experiments/sg2loc_verdict_evidence.py --shadow-rounds split``); and the same with
 KLD-sampling's floor (``KLDConfig.min_particles``) split 3/4 and 1/4 too (``split_floor``).
 
+``--check``: this checkout's filter beside the filter followed by the check of the SG2Loc guide
+("A check the pose was not fitted to"), :func:`jaxloc.sg2loc.depth_blind_check`: a depth-blind
+``localize`` of the same particles and ``depth_agreement`` at its estimates, over every stride
+(``check``, ``skip_finest=False``) or every stride but the finest (``check_coarse``, its default;
+``experiments/sg2loc_verdict_evidence.py --shadow-rounds coarse``).
+
     python benchmarks/localize_run.py --baseline /tmp/jaxloc-prev --repeats 3
     python benchmarks/localize_run.py --split --repeats 3
+    python benchmarks/localize_run.py --check --repeats 2
     python benchmarks/localize_run.py --frames 2 --particles 300 --width 320 --height 180
 """
 
@@ -43,7 +50,14 @@ def child(args: argparse.Namespace) -> dict:
 
     import jax
 
-    from jaxloc.sg2loc import KLDConfig, SG2LocConfig, depth_agreement, kld_for_capacity, localize
+    from jaxloc.sg2loc import (
+        KLDConfig,
+        SG2LocConfig,
+        depth_agreement,
+        depth_blind_check,
+        kld_for_capacity,
+        localize,
+    )
     from jaxloc.synthetic import indoor
 
     sensor = indoor.SensorConfig(width=args.width, height=args.height)
@@ -69,6 +83,14 @@ def child(args: argparse.Namespace) -> dict:
             blind = localize(key, scene, sequence, blind_config)
             share = depth_agreement(scene, sequence, blind.poses, config.strides[-1])
             return result.poses, share
+    elif args.variant.startswith("check"):
+        config = configured(args.particles)
+        skip_finest = args.variant == "check_coarse"
+
+        def run():
+            result = localize(key, scene, sequence, config)
+            check = depth_blind_check(key, scene, sequence, config, skip_finest=skip_finest)
+            return result.poses, check.passed
     else:
         config = configured(args.particles)
 
@@ -97,6 +119,7 @@ def main() -> None:
     parser.add_argument("--height", type=int, default=540)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--split", action="store_true", help="the budget split beside the filter")
+    parser.add_argument("--check", action="store_true", help="the check beside the filter")
     parser.add_argument("--variant", default="alone", help=argparse.SUPPRESS)
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -106,6 +129,8 @@ def main() -> None:
     runs = [(ROOT, "alone"), *((b.resolve(), "alone") for b in args.baseline)]
     if args.split:
         runs = [(ROOT, "alone"), (ROOT, "split"), (ROOT, "split_floor")]
+    if args.check:
+        runs = [(ROOT, "alone"), (ROOT, "check"), (ROOT, "check_coarse")]
     forwarded = [f"--{k}={getattr(args, k)}" for k in ("calls", "frames", "particles", "width")]
     forwarded += [f"--height={args.height}", f"--seed={args.seed}", "--child"]
     rows: dict[tuple[Path, str], list[dict]] = {run: [] for run in runs}
@@ -132,6 +157,8 @@ def main() -> None:
     print("|---|---|---|---|---|")
     labels = {"alone": "this one", "split": "3/4 with depth + 1/4 depth-blind + agreement"}
     labels["split_floor"] = labels["split"] + ", KLD floor split too"
+    labels["check"] = "+ depth-blind localize + agreement"
+    labels["check_coarse"] = labels["check"] + ", strides 20,8"
     for (tree, variant), results in rows.items():
         label = labels[variant] if tree == ROOT else str(tree)
         first, run = ([r[k] for r in results] for k in ("first", "run"))

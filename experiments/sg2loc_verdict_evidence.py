@@ -24,11 +24,12 @@ the filter's own estimate on >= tau of its rays" per tau.
 
 ``--shadow`` localizes the sequences of the conditions whose filter scores depth again, without
 depth (a depth-blind *shadow* filter: ``--shadow-rounds all``, the condition's rounds; ``first``,
-only its first round's stride; ``quarter``, every round with a quarter of the particles;
-``stream``, the filter with depth and the depth-blind one both as streams,
-:func:`jaxloc.sg2loc.online.filter_sequence`), and logs the depth agreement of the shadow's
-estimates. ``split`` runs the filter with depth again on three quarters of the particles: with the
-``quarter`` shadow, a check within the particle budget of the filter alone. ``--shadow-report``
+only its first round's stride; ``coarse``, every round but the finest (its agreement on that
+round's grid); ``quarter``, every round with a quarter of the particles; ``stream``, the filter
+with depth and the depth-blind one both as streams, :func:`jaxloc.sg2loc.online.filter_sequence`),
+and logs the depth agreement of the shadow's estimates. ``split`` runs the filter with depth again
+on three quarters of the particles: with the ``quarter`` shadow, a check within the particle
+budget of the filter alone. ``--shadow-report``
 judges the check "the shadow's estimate agrees with the recording's depth on >= tau of its rays"
 on the estimates of the filter that scores depth: flagged frames, precision (within 0.5 m and 10
 degrees), recall of the good frames and wrong-place frames flagged, per tau.
@@ -261,11 +262,12 @@ def run(seeds, split: str) -> None:
 
 
 #: The shadow filter's variants: the condition's every round, only its first round's stride,
-#: every round with a quarter of the particles, or streaming (both filters as streams); ``split``
-#: runs the filter with depth on the other three quarters of the particles (with the ``quarter``
-#: shadow, the particle budget of the filter alone); ``split_floor`` and ``quarter_floor`` the same
-#: with KLD-sampling's floor (500 particles) split too, 3/4 and 1/4.
-SHADOWS = ("all", "first", "quarter", "stream", "split", "split_floor", "quarter_floor")
+#: every round but the finest (``coarse``), every round with a quarter of the particles, or
+#: streaming (both filters as streams); ``split`` runs the filter with depth on the other three
+#: quarters of the particles (with the ``quarter`` shadow, the particle budget of the filter
+#: alone); ``split_floor`` and ``quarter_floor`` the same with KLD-sampling's floor (500 particles)
+#: split too, 3/4 and 1/4.
+SHADOWS = ("all", "first", "coarse", "quarter", "stream", "split", "split_floor", "quarter_floor")
 STREAM_FIELDS = ["seed", "kind", "frame", "width", "pos", "rot", "seconds", "inlier_rel"]
 STREAM_FIELDS += ["inlier_20"]
 STREAM_FIELDS += ["depth_inlier_rel", "depth_inlier_20"]
@@ -316,6 +318,8 @@ def run_shadow(seeds, rounds: str, split: str) -> None:
         blind = dict(condition, use_depth=0)
         if rounds == "first":
             blind["strides"] = str(condition["strides"]).split("/")[0]
+        elif rounds == "coarse":
+            blind["strides"] = "/".join(str(condition["strides"]).split("/")[:-1])
         elif rounds.startswith("quarter"):
             blind["capacity"] = condition["capacity"] // 4
         elif rounds.startswith("split"):  # not blind: the filter with depth on the rest

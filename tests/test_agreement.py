@@ -1,7 +1,7 @@
 """Depth agreement (:func:`jaxloc.sg2loc.depth_agreement`): its share against numpy, its rays
 against the renderer's, jit/vmap against eager calls, bad arguments, and the check it is for: the
 estimates of a depth-blind filter, on the test room (tests/test_filter.py) and its look-alike
-wrong place."""
+wrong place, and :func:`jaxloc.sg2loc.depth_blind_check` built on it."""
 
 from __future__ import annotations
 
@@ -18,11 +18,13 @@ from jaxloc.metrics import yaw_pose_errors
 from jaxloc.sg2loc import (
     AgreementConfig,
     depth_agreement,
+    depth_blind_check,
     kld_for_capacity,
     localize,
     render_batch,
 )
 from jaxloc.sg2loc._agreement import agreeing_share
+from jaxloc.sg2loc._check import blind_config
 from jaxloc.sg2loc._sequence import frames_on_grid
 from jaxloc.synthetic.indoor import make_episode, make_lookalike_episode
 
@@ -99,31 +101,66 @@ def test_bad_arguments_are_one_line_errors(room):
         depth_agreement(room.scene, room.sequence, room.poses_gt[:3], STRIDE)
 
 
+#: The test room's filter with 1,000 particles: with the test's 400 the depth-blind filter does not
+#: converge in this room (0.4-0.9 m off, nothing passes).
+CHECKED_CONFIG = dataclasses.replace(LOCALIZE_CONFIG, capacity=1000, kld=kld_for_capacity(1000))
+
+
 def test_depth_blind_check_flags_right_estimates_and_no_wrong_place(room):
-    """The check of docs/pages/sg2loc.md: localize with depth (the estimate a user acts on) and,
-    as a check, without it; flag a frame when the depth-blind estimate explains >= half of the
-    recording's depth. The flagged frames' estimates are within 0.5 m and 10 degrees; no frame of
-    the look-alike wrong place is flagged. The depth-blind filter gets 1,000 particles: with the
-    test's 400 it does not converge in this room (0.4-0.9 m off, nothing flagged)."""
-    blind = dataclasses.replace(
-        LOCALIZE_CONFIG,
-        capacity=1000,
-        kld=kld_for_capacity(1000),
-        observation=dataclasses.replace(LOCALIZE_CONFIG.observation, use_depth=False),
-    )
+    """The check of docs/pages/sg2loc.md: localize with depth (the estimate a user acts on) and
+    check it with :func:`depth_blind_check` (a depth-blind filter's estimates against the
+    recording's depth). The passed frames' estimates are within 0.5 m and 10 degrees; no frame of
+    the look-alike wrong place passes."""
     wrong = make_lookalike_episode(0, 7919, 5, EPISODE_CONFIG)
-    key, stride = jax.random.key(0), blind.strides[-1]
-    flagged = {}
+    key, passed = jax.random.key(0), {}
     for name, episode in (("right", room), ("wrong", wrong)):
-        scene, sequence = episode.scene, episode.sequence
-        checked = localize(key, scene, sequence, blind)
-        assert not checked.used_depth
-        share = np.asarray(depth_agreement(scene, sequence, checked.poses, stride))
-        flagged[name] = share >= 0.5
-        print(f"\n{name}: depth-blind estimate's agreement {np.round(share, 3)}")
+        check = depth_blind_check(key, episode.scene, episode.sequence, CHECKED_CONFIG)
+        passed[name] = np.asarray(check.passed)
+        print(f"\n{name}: depth-blind estimate's agreement {np.round(check.agreement, 3)}")
     estimate = localize(key, room.scene, room.sequence, LOCALIZE_CONFIG)
     pos, rot = yaw_pose_errors(np.asarray(estimate.poses), room.poses_gt)
     print(f"estimates' errors {np.round(pos, 3)} m {np.round(rot, 2)} deg")
-    assert flagged["right"].any(), "no right frame passes"
-    assert np.all((pos[flagged["right"]] < 0.5) & (rot[flagged["right"]] < 10.0))
-    assert not flagged["wrong"].any()
+    assert passed["right"].any(), "no right frame passes"
+    assert np.all((pos[passed["right"]] < 0.5) & (rot[passed["right"]] < 10.0))
+    assert not passed["wrong"].any()
+
+
+def test_depth_blind_check_is_the_depth_blind_filter_and_its_agreement(room):
+    """:func:`depth_blind_check` is ``localize`` without the depth score (and without the finest
+    of three or more strides), then :func:`depth_agreement` on its last stride; the threshold is
+    traced (a jitted vmap over thresholds gives the shares' comparisons); bad arguments are
+    one-line errors."""
+    three = dataclasses.replace(CHECKED_CONFIG, strides=(20, 10, 8), box_half_widths=(0.8, 0.4))
+    assert blind_config(three).strides == (20, 10) and not blind_config(three).observation.use_depth
+    assert blind_config(three, skip_finest=False).strides == (20, 10, 8)
+    assert blind_config(CHECKED_CONFIG).strides == CHECKED_CONFIG.strides  # one would be left
+    key = jax.random.key(3)
+    check = depth_blind_check(key, room.scene, room.sequence, CHECKED_CONFIG)
+    blind = dataclasses.replace(
+        CHECKED_CONFIG,
+        observation=dataclasses.replace(CHECKED_CONFIG.observation, use_depth=False),
+    )
+    reference = localize(key, room.scene, room.sequence, blind)
+    assert not reference.used_depth and check.stride == CHECKED_CONFIG.strides[-1]
+    share = depth_agreement(room.scene, room.sequence, reference.poses, check.stride)
+    np.testing.assert_array_equal(np.asarray(check.blind_poses), np.asarray(reference.poses))
+    np.testing.assert_array_equal(np.asarray(check.agreement), np.asarray(share))
+    thresholds = jnp.float32([0.0, 0.5, 0.9, 1.0])
+    swept = jax.jit(
+        jax.vmap(
+            lambda t: (
+                depth_blind_check(
+                    key, room.scene, room.sequence, CHECKED_CONFIG, threshold=t
+                ).passed
+            )
+        )
+    )
+    np.testing.assert_array_equal(
+        np.asarray(swept(thresholds)), np.asarray(share)[None] >= np.asarray(thresholds)[:, None]
+    )
+    assert np.asarray(swept(thresholds))[0].all()  # every share is >= 0
+    without = dataclasses.replace(room.sequence, depth=None)
+    with pytest.raises(ValueError, match="depth_blind_check needs a sequence with depth"):
+        depth_blind_check(key, room.scene, without, CHECKED_CONFIG)
+    with pytest.raises(ValueError, match=r"threshold must be in \[0, 1\], got 1.5"):
+        depth_blind_check(key, room.scene, room.sequence, CHECKED_CONFIG, threshold=1.5)

@@ -14,13 +14,16 @@ particle sees: :func:`render`, :func:`render_batch`. The scores' settings:
 score enough rays); KLD-sampling: :class:`KLDConfig` (:func:`kld_for_capacity`, the bounds for a
 particle capacity); the per-frame verdict: :class:`VerdictConfig`, :class:`Verdict` (its calibrated
 :class:`ConfidenceModel`); a check of estimates chosen without the depth:
-:func:`depth_agreement` (:class:`AgreementConfig`).
+:func:`depth_agreement` (:class:`AgreementConfig`), and the check built on it,
+:func:`depth_blind_check` (:class:`DepthCheck`): a depth-blind filter's estimates measured
+against the recording's depth.
 
 Around them: :mod:`~jaxloc.sg2loc.refine` (6-DoF pose refinement), :mod:`~jaxloc.sg2loc.learn`
 (learning the likelihood parameters), :mod:`~jaxloc.sg2loc.retrieval` (scene retrieval),
 :mod:`~jaxloc.sg2loc.sharded` (particles split over devices) and :mod:`~jaxloc.sg2loc.figures`.
 The stages live in private modules (``_sequence``, ``_rendering``, ``_particles``, ``_scores``,
-``_resampling``, ``_verdict``, ``_agreement``, ``_filter``, ``_rounds``, ``_localization``).
+``_resampling``, ``_verdict``, ``_agreement``, ``_check``, ``_filter``, ``_rounds``,
+``_localization``).
 """
 
 from typing import TYPE_CHECKING
@@ -41,6 +44,10 @@ if TYPE_CHECKING:  # where each public name comes from (jaxloc._lazy imports it 
     from jaxloc.sg2loc._agreement import (
         AgreementConfig as AgreementConfig,
         depth_agreement as depth_agreement,
+    )
+    from jaxloc.sg2loc._check import (
+        DepthCheck as DepthCheck,
+        depth_blind_check as depth_blind_check,
     )
     from jaxloc.sg2loc._filter import (
         Region as Region,
