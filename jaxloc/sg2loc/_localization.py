@@ -156,7 +156,9 @@ class SG2LocResult(NamedTuple):
         poses: (T, 4) the final round's MLE at every frame, (x, y, z, yaw).
         localized: (T,) bool, the final round's verdict at every frame: act on ``poses[t]`` only
             where it is True (:mod:`jaxloc.sg2loc._verdict`; what it is made of:
-            ``info.verdict``).
+            ``info.verdict``). It is shy where the data differ from its calibration; with the
+            recording's depth, :func:`~jaxloc.sg2loc.depth_blind_check` is a verdict that
+            carried over to held-out conditions, at the cost of a second, depth-blind filter.
         round_mle: (R, T, 4) every round's per-frame MLE.
         round_start: (R, 4) the centre each round was initialised around (round 0: NaN).
         num_particles: (R, T) int32 particles after KLD resampling.
