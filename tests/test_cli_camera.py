@@ -367,3 +367,42 @@ def test_localize_camera_online_is_the_library_stream(built, capsys):
     np.testing.assert_allclose(report["poses"], expected.pose, atol=1e-6)
     assert report["localized"] == expected.localized.tolist()
     np.testing.assert_allclose(report["confidence"], expected.verdict.confidence, atol=1e-4)
+
+
+@pytest.mark.slow
+def test_depth_check_is_the_library_check_and_is_printed_per_frame(built, capsys):
+    """``--depth-check`` adds :func:`jaxloc.sg2loc.depth_blind_check`'s ``passed`` for the
+    recording and settings of the run, per frame in the JSON and in the text; without depth or
+    with ``--online`` it is a one-line error."""
+    import jax
+
+    from jaxloc.io import open_camera_recording
+    from jaxloc.sg2loc import SG2LocConfig, depth_blind_check, kld_for_capacity
+
+    map_path, seq, _ = built
+    argv = ["localize-camera", map_path, seq, *LOCALIZE, "--depth-check"]
+    code, out, err = run([*argv, "--json"], capsys)
+    assert code == 0, err
+    report = json.loads(out)
+    recording = open_camera_recording(seq, map_file=map_path, width=64)
+    config = SG2LocConfig(
+        capacity=1000,
+        strides=(6, 3),
+        box_half_widths=(0.8,),
+        heights=(1.2, 1.3, 1.4),
+        kld=kld_for_capacity(1000),
+    )
+    expected = depth_blind_check(
+        jax.random.key(0), load_scene(map_path), recording.sequence, config
+    )
+    assert report["depth_check"] == np.asarray(expected.passed).tolist()
+    assert any(report["depth_check"]), "the fixture's walk passes the check on some frame"
+    code, out, err = run(argv, capsys)
+    lines = [line for line in out.splitlines() if line.startswith("frame ")]
+    checked = [re.search(r"depth check (passed|failed)", line)[1] == "passed" for line in lines]
+    assert code == 0 and checked == report["depth_check"]
+    assert f"depth check passed: {sum(checked)} frames" in out
+    result = run([*argv, "--online"], capsys)
+    assert_input_error(*result, "--depth-check checks the coarse-to-fine rounds")
+    result = run([*argv, "--no-depth"], capsys)
+    assert_input_error(*result, "--depth-check needs depth images", "--no-depth")

@@ -39,9 +39,10 @@ embeddings with the map's class embeddings. --odometry (default odometry.txt bes
 lines "N m00 ... m33", camera-to-odometry, z up) gives the ego-motion and tilt.
 
 Per frame: the estimate (x, y, z m, yaw deg, the map's frame), the verdict (act on the estimate
-only when localized), its confidence (the probability of being within 0.5 m and 10 deg) and, with
-ground truth, the errors and recalls. --online: what a live camera
-would have been told (jaxloc.sg2loc.online, one round at the first stride). --poses-out: for evo.
+only when localized), its confidence (the probability of being within 0.5 m and 10 deg), with
+--depth-check a depth-blind filter's verdict, and with ground truth the errors and recalls.
+--online: what a live camera would have been told (jaxloc.sg2loc.online, one round at the first
+stride). --poses-out: for evo.
 """
 
 EPILOG = """\
@@ -108,6 +109,8 @@ def add_parser(commands) -> None:
     heights = "initial camera heights above the floor, m (default PAPER_HEIGHTS)"
     add_list(add, "--heights", nonnegative_float, "1.2,1.3,1.4", heights, metavar="H")
     add("--online", action="store_true", help="stream the frames (jaxloc.sg2loc.online)")
+    check = "check the estimates with a depth-blind filter (depth_blind_check; not --online)"
+    add("--depth-check", action="store_true", help=check)
     add("--seed", type=seed, default=0, help="random seed")
     add = parser.add_argument_group("output").add_argument
     add("--json", action="store_true", help="print one JSON document instead")
@@ -157,19 +160,21 @@ def run_localize_camera(args: argparse.Namespace) -> int:
     from jaxloc.io.camera_recording import camera_pose_matrices
     from jaxloc.io.scene_map import load_scene
     from jaxloc.metrics import summarize_sequence
-    from jaxloc.sg2loc import check_ssim_strides, localize, online, warm_up
-    from jaxloc.sg2loc._report import format_report, refinement_record
+    from jaxloc.sg2loc import check_ssim_strides, depth_blind_check, localize, online, warm_up
+    from jaxloc.sg2loc._report import format_report, refinement_record, run_record
     from jaxloc.sg2loc.figures import plot_rounds
 
-    if args.online and args.plot is not None:
-        raise InputError("--plot draws the coarse-to-fine rounds; there are none with --online")
+    if args.online and (args.plot is not None or args.depth_check):
+        flag = "--plot draws" if args.plot is not None else "--depth-check checks"
+        raise InputError(f"{flag} the coarse-to-fine rounds; there are none with --online")
     config = _config(args)
     with reading():
         scene = load_scene(args.map)
     folder = _load_recording(args)
     seq = folder.sequence
-    if args.refine and seq.depth is None:
-        raise InputError(f"--refine needs depth images in {args.seq_dir} (and no --no-depth)")
+    if (args.refine or args.depth_check) and seq.depth is None:
+        flag = "--refine" if args.refine else "--depth-check"
+        raise InputError(f"{flag} needs depth images in {args.seq_dir} (and no --no-depth)")
     if seq.rgb is not None:
         strides = config.strides[:1] if args.online else config.strides
         width, height = seq.camera.width, seq.camera.height
@@ -192,19 +197,10 @@ def run_localize_camera(args: argparse.Namespace) -> int:
     else:  # the rounds compile side by side (warm_up's threads); localize waits for them
         warm_up(key, scene, seq, config, progress=progress)
         result = localize(key, scene, seq, config, progress=progress)
-    poses = np.asarray(result.pose if args.online else result.poses, np.float64)
-    verdict = result.verdict if args.online else result.info.verdict
-    report: dict = {
-        "map": str(args.map),
-        "sequence": str(args.seq_dir),
-        "format": folder.format,
-        "frames": list(folder.frame_ids),
-        "skipped": list(folder.skipped),
-        "mode": "online" if args.online else "offline",
-        "poses": poses.tolist(),
-        "localized": np.asarray(result.localized, bool).tolist(),
-        "confidence": np.round(np.asarray(verdict.confidence, np.float64), 4).tolist(),
-    }
+    report = run_record(result, folder, args.map, args.seq_dir, args.online)
+    poses = np.asarray(report["poses"])
+    if args.depth_check:
+        report["depth_check"] = depth_blind_check(key, scene, seq, config).passed.tolist()
     if folder.poses_gt is not None:
         report.update(summarize_sequence(poses, folder.poses_gt))
     if args.refine:

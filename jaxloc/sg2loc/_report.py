@@ -22,18 +22,40 @@ def refinement_record(scene, sequence, last_pose, T_gt: np.ndarray | None = None
     return out
 
 
+def run_record(result, folder, map_file, seq_dir, online: bool) -> dict:
+    """The JSON-ready record of a :func:`~jaxloc.sg2loc.localize` result (``online``: of
+    :func:`~jaxloc.sg2loc.online.filter_sequence`) on the camera recording ``folder``
+    (:func:`jaxloc.io.open_camera_recording`): the files, frames, mode, ``poses`` (x, y, z m,
+    yaw rad), ``localized`` and ``confidence`` per frame."""
+    poses = result.pose if online else result.poses
+    verdict = result.verdict if online else result.info.verdict
+    return {
+        "map": str(map_file),
+        "sequence": str(seq_dir),
+        "format": folder.format,
+        "frames": list(folder.frame_ids),
+        "skipped": list(folder.skipped),
+        "mode": "online" if online else "offline",
+        "poses": np.asarray(poses, np.float64).tolist(),
+        "localized": np.asarray(result.localized, bool).tolist(),
+        "confidence": np.round(np.asarray(verdict.confidence, np.float64), 4).tolist(),
+    }
+
+
 def format_report(report: dict) -> str:
     """The text of a run's JSON ``report`` (``frames``, ``poses`` (x, y, z m, yaw rad),
-    ``localized``; optionally ``confidence``, the per-frame errors, the ``all_frames`` /
-    ``last_frame`` summaries of :func:`jaxloc.metrics.summarize_sequence`, ``refined``
-    (:func:`refinement_record`), ``figure`` and ``rerun``): a line per frame (yaw in deg), the
-    summaries, the refinement."""
+    ``localized``; optionally ``confidence``, ``depth_check`` (per frame), the per-frame errors,
+    the ``all_frames`` / ``last_frame`` summaries of :func:`jaxloc.metrics.summarize_sequence`,
+    ``refined`` (:func:`refinement_record`), ``figure`` and ``rerun``): a line per frame (yaw in
+    deg), the summaries, the refinement."""
     lines = []
     for t, number in enumerate(report["frames"]):
         (x, y, z, yaw), verdict = report["poses"][t], report["localized"][t]
         line = f"frame {number}: {'localized' if verdict else 'NOT localized'}"
         if "confidence" in report:
             line += f" (confidence {report['confidence'][t]:.2f})"
+        if "depth_check" in report:
+            line += f", depth check {'passed' if report['depth_check'][t] else 'failed'}"
         line += f", x {x:.3f} y "
         line += f"{y:.3f} z {z:.3f} m, yaw {np.degrees(yaw):.1f} deg"
         if "position_error_m" in report:
@@ -41,6 +63,8 @@ def format_report(report: dict) -> str:
             line += f"{report['rotation_error_deg'][t]:.2f} deg"
         lines.append(line)
     lines.append(f"localized: {sum(report['localized'])} of {len(report['frames'])} frames")
+    if "depth_check" in report:
+        lines.append(f"depth check passed: {sum(report['depth_check'])} frames")
     for name in ("all_frames", "last_frame"):
         if name in report:
             values = ", ".join(f"{k} {v:.3f}" for k, v in report[name].items())
